@@ -1,0 +1,187 @@
+"""WalkerEnv (gymnasium) and BatchedWalkerEnv (TorchRL): checkers, determinism, faults, bad input."""
+
+import gymnasium
+import numpy as np
+import pybullet
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+from torchrl.envs import ParallelEnv
+from torchrl.envs.utils import check_env_specs
+
+from unipolicy_rl.envs import (
+    ENV_ID,
+    BatchedWalkerEnv,
+    Design,
+    DesignDistribution,
+    PhysicsSettings,
+    RewardWeights,
+    RobotSettings,
+    WalkerEnv,
+    walking_reward,
+)
+from unipolicy_rl.envs.gait import SineGait, walk
+
+
+def test_gymnasium_checker_passes():
+    env = gymnasium.make(ENV_ID)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"observation": "full", "append_design": True}])
+def test_torchrl_spec_checker_passes(kwargs):
+    env = BatchedWalkerEnv(3, **kwargs)
+    env.set_seed(0)
+    check_env_specs(env)
+    env.close()
+
+
+def test_observation_sizes():
+    assert WalkerEnv().observation_space.shape == (18,)
+    assert WalkerEnv(append_design=True).observation_space.shape == (20,)
+    assert WalkerEnv(observation="full").observation_space.shape == (15 * 6 + 2 * 4,)
+
+
+def _gym_trajectory(seed):
+    env = WalkerEnv()
+    observation, info = env.reset(seed=seed)
+    observations, rng = [observation], np.random.default_rng(1)
+    for _ in range(20):
+        observations.append(env.step(rng.uniform(-1, 1, 4))[0])
+    env.close()
+    return info["design"], np.array(observations)
+
+
+def test_gym_env_is_deterministic_under_a_seed():
+    design_a, a = _gym_trajectory(7)
+    design_b, b = _gym_trajectory(7)
+    design_c, _ = _gym_trajectory(8)
+    assert design_a == design_b != design_c
+    np.testing.assert_array_equal(a, b)
+
+
+def test_batched_env_is_deterministic_under_a_seed():
+    def rollout(seed):
+        env = BatchedWalkerEnv(3)
+        env.set_seed(seed)
+        torch.manual_seed(0)
+        data = env.rollout(15)
+        env.close()
+        return data
+
+    a, b = rollout(3), rollout(3)
+    torch.testing.assert_close(a["next", "observation"], b["next", "observation"], rtol=0, atol=0)
+    assert not torch.equal(a["design"], rollout(4)["design"])
+
+
+def test_reward_is_the_thesis_formula():
+    weights = RewardWeights(w_x=2.0, w_y=-0.5, w_x_dot=3.0)
+    env = WalkerEnv(reward_weights=weights)
+    env.reset(seed=0)
+    for _ in range(10):
+        observation, reward, *_ = env.step(np.full(4, 0.7))
+        expected = 2.0 * observation[0] - 0.5 * abs(observation[1]) + 3.0 * observation[3]
+        assert reward == pytest.approx(expected, abs=1e-5)
+    env.close()
+    batch = torch.tensor([[1.0, -2.0, 0.3, 0.5] + [0.0] * 14])
+    assert walking_reward(batch, weights).item() == pytest.approx(2.0 - 1.0 + 1.5)
+
+
+def test_episode_truncates_after_episode_length_and_reports_metrics():
+    env = WalkerEnv(design=DesignDistribution.fixed(0.175, 0.5), episode_length=5)
+    env.reset(seed=0)
+    for step in range(5):
+        _, _, terminated, truncated, info = env.step(np.zeros(4))
+        assert not terminated and truncated == (step == 4)
+    assert info["design"] == Design(0.175, 0.5)
+    assert info["mean_forward_speed"] == pytest.approx(info["forward_displacement"] / (5 * 16 / 240))
+    env.close()
+
+
+def test_explicit_design_in_reset_options():
+    env = WalkerEnv()
+    _, info = env.reset(seed=0, options={"design": (0.16, 0.55)})
+    assert info["design"] == Design(0.16, 0.55)
+    env.close()
+
+
+def test_exploding_physics_truncates_with_a_flag_and_no_nan():
+    env = WalkerEnv()
+    previous, _ = env.reset(seed=0)
+    simulation = env.simulation
+    # Throw the robot far past any physical state; the fault check must catch it.
+    pybullet.resetBasePositionAndOrientation(simulation.body.body_id, (1e4, 0, 1), (0, 0, 0, 1),
+                                             physicsClientId=simulation.client)
+    observation, reward, _, truncated, info = env.step(np.zeros(4))
+    assert truncated and info["physics_fault"]
+    assert np.all(np.isfinite(observation)) and np.isfinite(reward)
+    np.testing.assert_array_equal(observation, previous)
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: Design(-0.1, 0.5), "-0.1"),
+        (lambda: DesignDistribution((0.2, 0.15), (0.4, 0.6)), "empty"),
+        (lambda: RobotSettings(actuated=("rear_left_hip", "tail_wag")), "tail_wag"),
+        (lambda: RobotSettings(observed_links=("front_left_claw",)), "front_left_claw"),
+        (lambda: PhysicsSettings(substeps=0), "substeps"),
+        (lambda: RewardWeights(w_y=1.0), "w_y"),
+        (lambda: WalkerEnv(observation="pixels"), "pixels"),
+        (lambda: BatchedWalkerEnv(0), "num_robots"),
+    ],
+)
+def test_bad_settings_raise_naming_the_value(make, message):
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_bad_actions_raise():
+    env = WalkerEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\(3,\)"):
+        env.step(np.zeros(3))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([0.0, np.nan, 0.0, 0.0]))
+    env.close()
+
+
+def test_partial_reset_rebuilds_only_masked_robots():
+    env = BatchedWalkerEnv(3, design=DesignDistribution.fixed(0.175, 0.5))
+    env.set_seed(0)
+    td = env.reset()
+    for _ in range(5):
+        td = env.step(td.set("action", torch.full((3, 4), 0.8)))["next"].clone()
+    mask = torch.tensor([[False], [True], [False]])
+    # TorchRL's contract: the reset input is the current carrier, plus the _reset mask.
+    before = td.clone()
+    designs = before["design"].clone()
+    designs[1] = torch.tensor([0.19, 0.45])
+    after = env.reset(td.update({"_reset": mask, "design": designs}))
+    torch.testing.assert_close(after["observation"][[0, 2]], before["observation"][[0, 2]])
+    torch.testing.assert_close(after["observation"][[0, 2]], torch.as_tensor(env._raw[[0, 2]], dtype=torch.float32))
+    assert after["observation"][1, 0].abs() < 1e-3  # back at the origin
+    torch.testing.assert_close(after["design"][1], torch.tensor([0.19, 0.45]))
+    torch.testing.assert_close(after["design"][0], torch.tensor([0.175, 0.5]))
+    assert env._steps.tolist() == [5, 0, 5]
+    env.close()
+
+
+def test_parallel_env_runs_batched_workers():
+    env = ParallelEnv(2, lambda: BatchedWalkerEnv(2), mp_start_method="spawn")
+    env.set_seed(0)
+    data = env.rollout(5)
+    env.close()
+    assert data.shape == torch.Size([2, 2, 5])
+    assert torch.isfinite(data["next", "observation"]).all()
+
+
+def test_sine_gait_walks_the_de_robot_forward():
+    env = WalkerEnv(DesignDistribution.fixed(0.175, 0.5))
+    result = walk(env, SineGait())
+    env.close()
+    assert result["steps"] == 100
+    assert result["forward_displacement"] >= 0.3
+    assert not result["physics_fault"]

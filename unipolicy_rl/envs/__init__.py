@@ -1,0 +1,26 @@
+"""Walking environments: gymnasium's ``WalkerEnv`` and the batched TorchRL ``BatchedWalkerEnv``."""
+
+import gymnasium
+
+from unipolicy_rl.envs.batched import BatchedWalkerEnv
+from unipolicy_rl.envs.design import Design, DesignDistribution
+from unipolicy_rl.envs.reward import RewardWeights, walking_reward
+from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
+from unipolicy_rl.envs.walker import WalkerEnv
+
+ENV_ID = "unipolicy_rl/Walker-v0"
+if ENV_ID not in gymnasium.registry:
+    gymnasium.register(ENV_ID, entry_point="unipolicy_rl.envs.walker:WalkerEnv")
+
+__all__ = [
+    "ENV_ID",
+    "BatchedWalkerEnv",
+    "Design",
+    "DesignDistribution",
+    "PhysicsSettings",
+    "RewardWeights",
+    "RobotSettings",
+    "WalkerEnv",
+    "WalkerSimulation",
+    "walking_reward",
+]

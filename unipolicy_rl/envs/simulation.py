@@ -1,0 +1,194 @@
+"""One robot in one PyBullet client: build a design, drive its motors, read its state.
+
+Both the gymnasium env and the batched TorchRL env step robots through this class, so
+there is a single place where physics settings, observations and fault handling live.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet
+
+from unipolicy_rl.envs.design import Design
+from unipolicy_rl.robots import DEFAULT_ACTUATED, RobotBody, load_robot, standing_height, vertebrate
+from unipolicy_rl.robots.urdf import JOINT_RANGE
+
+OBSERVATIONS = ("thesis", "full")
+# Positions beyond this (m) or speeds beyond this (m/s) mean the solver has blown up.
+EXPLOSION_LIMIT = 100.0
+
+
+@dataclass(frozen=True)
+class PhysicsSettings:
+    """Simulation and low-level control: 240 Hz physics, one action per 16 physics steps,
+    joint targets tracked by PyBullet's PD position motor (gains and torque limit)."""
+
+    time_step: float = 1.0 / 240.0
+    substeps: int = 16
+    # Stiffer than the thesis' 0.05 / 0.1 and stronger than RoboGrammar's 1 N m: with
+    # those, the long heavy corner of the SE range (l=0.2, rho=0.6) cannot hold its weight.
+    position_gain: float = 0.3
+    velocity_gain: float = 1.0
+    max_torque: float = 1.5
+    action_range: float = JOINT_RANGE
+    lateral_friction: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (self.time_step > 0 and math.isfinite(self.time_step)):
+            raise ValueError(f"time_step must be positive, got {self.time_step!r}")
+        if not (isinstance(self.substeps, int) and self.substeps >= 1):
+            raise ValueError(f"substeps must be a positive integer, got {self.substeps!r}")
+        for name in ("position_gain", "velocity_gain", "max_torque", "lateral_friction"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+        if not 0 < self.action_range <= JOINT_RANGE:
+            raise ValueError(f"action_range must lie in (0, {JOINT_RANGE}] rad, got {self.action_range!r}")
+
+    @property
+    def control_period(self) -> float:
+        return self.time_step * self.substeps
+
+
+@dataclass(frozen=True)
+class RobotSettings:
+    """Which robot and which of its hinges the policy drives (the rest are locked)."""
+
+    actuated: tuple[str, ...] = DEFAULT_ACTUATED
+    knee_angle_deg: float = 60.0
+    # The thesis observes the base and "the two outermost leg links": we take the front
+    # and rear left-right diagonal's feet, which see both phases of a trotting gait.
+    observed_links: tuple[str, ...] = ("front_left_shin", "rear_right_shin")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "actuated", tuple(self.actuated))
+        object.__setattr__(self, "observed_links", tuple(self.observed_links))
+        if not self.actuated:
+            raise ValueError("at least one joint must be actuated")
+        description = self.describe(Design(0.175, 0.5))
+        for name in self.observed_links:
+            description.link(name)
+
+    def describe(self, design: Design):
+        return vertebrate(design.length, design.density, self.actuated, self.knee_angle_deg)
+
+
+class WalkerSimulation:
+    """A PyBullet DIRECT client holding a plane and one robot of the current design."""
+
+    def __init__(self, robot: RobotSettings, physics: PhysicsSettings, observation: str = "thesis"):
+        if observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
+        self.robot_settings = robot
+        self.physics = physics
+        self.observation_kind = observation
+        self.num_actions = len(robot.actuated)
+        template = robot.describe(Design(0.175, 0.5))
+        self._link_names = [link.name for link in template.links]
+        self.observation_size = 6 * (1 + len(robot.observed_links)) if observation == "thesis" else (
+            6 * len(self._link_names) + 2 * self.num_actions
+        )
+        self.client = pybullet.connect(pybullet.DIRECT)
+        pybullet.setPhysicsEngineParameter(fixedTimeStep=physics.time_step, physicsClientId=self.client)
+        pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=self.client)
+        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=self.client)
+        self._plane = pybullet.createMultiBody(0.0, plane, physicsClientId=self.client)
+        pybullet.changeDynamics(self._plane, -1, lateralFriction=physics.lateral_friction,
+                                physicsClientId=self.client)
+        self.body: RobotBody | None = None
+        self.design: Design | None = None
+        self._origin = np.zeros(2)
+        self._initial_targets = np.zeros(self.num_actions)
+        self._last_observation = np.zeros(self.observation_size)
+
+    # -- lifecycle -----------------------------------------------------------------
+    def reset(self, design: Design) -> np.ndarray:
+        """Rebuilds the robot with ``design`` standing at the origin, facing +x."""
+        if self.body is not None:
+            pybullet.removeBody(self.body.body_id, physicsClientId=self.client)
+        description = self.robot_settings.describe(design)
+        height = standing_height(description) + 0.005
+        self.body = load_robot(self.client, description, (0.0, 0.0, height), math.pi, self.physics.max_torque)
+        for link_index in self.body.link_indices.values():
+            pybullet.changeDynamics(self.body.body_id, link_index, lateralFriction=self.physics.lateral_friction,
+                                    physicsClientId=self.client)
+        self.design = design
+        self._observed = [self.body.link_index(name) for name in self.robot_settings.observed_links]
+        self._all_links = [self.body.link_index(name) for name in self._link_names[1:]]
+        self._initial_targets = np.zeros(self.num_actions)
+        self._drive(self._initial_targets)
+        base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
+        self._origin = np.array(base_position[:2])
+        observation, _ = self._read()
+        self._last_observation = observation
+        return observation
+
+    def close(self) -> None:
+        if self.client is not None and pybullet.isConnected(self.client):
+            pybullet.disconnect(self.client)
+        self.client = None
+
+    # -- stepping ------------------------------------------------------------------
+    def joint_targets(self, action: np.ndarray) -> np.ndarray:
+        """Maps an action in [-1, 1] (clipped) to joint targets within +-action_range of the initial pose."""
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action!r}")
+        return self._initial_targets + self.physics.action_range * np.clip(action, -1.0, 1.0)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Applies one action for ``substeps`` physics steps; returns (observation, faulted).
+
+        A faulted step (non-finite or exploding state) returns the last good observation,
+        so no NaN ever reaches a policy or a replay buffer; the caller ends the episode.
+        """
+        self._drive(self.joint_targets(action))
+        for _ in range(self.physics.substeps):
+            pybullet.stepSimulation(physicsClientId=self.client)
+        observation, healthy = self._read()
+        if not healthy:
+            return self._last_observation.copy(), True
+        self._last_observation = observation
+        return observation, False
+
+    def _drive(self, targets: np.ndarray) -> None:
+        physics = self.physics
+        n = self.num_actions
+        pybullet.setJointMotorControlArray(
+            self.body.body_id,
+            self.body.actuated_joint_indices,
+            pybullet.POSITION_CONTROL,
+            targetPositions=targets.tolist(),
+            forces=[physics.max_torque] * n,
+            positionGains=[physics.position_gain] * n,
+            velocityGains=[physics.velocity_gain] * n,
+            physicsClientId=self.client,
+        )
+
+    # -- state ---------------------------------------------------------------------
+    def _read(self) -> tuple[np.ndarray, bool]:
+        body, client = self.body.body_id, self.client
+        position, _ = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
+        velocity, _ = pybullet.getBaseVelocity(body, physicsClientId=client)
+        links = self._observed if self.observation_kind == "thesis" else self._all_links
+        # Forward kinematics on read: otherwise link states lag the base by one physics step.
+        states = pybullet.getLinkStates(body, links, computeLinkVelocity=1, computeForwardKinematics=1,
+                                        physicsClientId=client)
+        values = [*position, *velocity]
+        for state in states:
+            values += [*state[0], *state[6]]
+        if self.observation_kind == "full":
+            joints = pybullet.getJointStates(body, self.body.actuated_joint_indices, physicsClientId=client)
+            values += [joint[0] for joint in joints] + [joint[1] for joint in joints]
+        observation = np.asarray(values, dtype=np.float64)
+        # Positions are measured from where the base started, as the thesis' fixed global frame.
+        xyz = observation[: 6 * (1 + len(links))].reshape(-1, 6)
+        xyz[:, :2] -= self._origin
+        healthy = bool(np.all(np.isfinite(observation)) and np.max(np.abs(observation)) < EXPLOSION_LIMIT)
+        return observation, healthy
+
+    def base_position(self) -> np.ndarray:
+        """Base link position relative to its start (x, y) and its height (z)."""
+        return self._last_observation[:3].copy()
