@@ -185,3 +185,19 @@ def test_sine_gait_walks_the_de_robot_forward():
     assert result["steps"] == 100
     assert result["forward_displacement"] >= 0.3
     assert not result["physics_fault"]
+
+
+def test_batched_env_truncates_a_faulted_robot_only():
+    env = BatchedWalkerEnv(2, design=DesignDistribution.fixed(0.175, 0.5))
+    env.set_seed(0)
+    td = env.reset()
+    previous = td["observation"].clone()
+    faulty = env.simulations[1]
+    pybullet.resetBasePositionAndOrientation(faulty.body.body_id, (1e4, 0, 1), (0, 0, 0, 1),
+                                             physicsClientId=faulty.client)
+    out = env.step(td.set("action", torch.zeros(2, 4)))["next"]
+    assert out["physics_fault"].flatten().tolist() == [False, True]
+    assert out["truncated"].flatten().tolist() == [False, True]
+    torch.testing.assert_close(out["observation"][1], previous[1])
+    assert torch.isfinite(out["reward"]).all()
+    env.close()

@@ -7,7 +7,7 @@ import pybullet
 import pytest
 
 from unipolicy_rl.envs import Design, RobotSettings, WalkerSimulation
-from unipolicy_rl.envs.simulation import PhysicsSettings
+from unipolicy_rl.envs.simulation import PhysicsSettings, joint_targets
 from unipolicy_rl.robots import HINGES, Joint, Link, RobotDescription, vertebrate, write_urdf
 
 
@@ -110,7 +110,7 @@ def test_locked_joints_do_not_move():
 def test_actions_are_clipped_to_the_joint_range():
     simulation = WalkerSimulation(RobotSettings(), PhysicsSettings())
     simulation.reset(Design(0.175, 0.5))
-    targets = simulation.joint_targets(np.array([5.0, -7.0, 0.5, 1.0]))
+    targets = joint_targets(np.array([5.0, -7.0, 0.5, 1.0]), simulation.physics.action_range)
     assert targets == pytest.approx([1.5, -1.5, 0.75, 1.5])
     for _ in range(30):
         simulation.step(np.array([50.0, -50.0, 50.0, -50.0]))

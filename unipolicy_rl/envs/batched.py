@@ -14,7 +14,13 @@ from torchrl.envs import EnvBase
 
 from unipolicy_rl.envs.design import Design, DesignDistribution
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
-from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
+from unipolicy_rl.envs.simulation import (
+    PhysicsSettings,
+    RobotSettings,
+    WalkerSimulation,
+    healthy_rows,
+    joint_targets,
+)
 
 
 class BatchedWalkerEnv(EnvBase):
@@ -52,6 +58,7 @@ class BatchedWalkerEnv(EnvBase):
         self.append_design = append_design
         robot, physics = robot or RobotSettings(), physics or PhysicsSettings()
         self.simulations = [WalkerSimulation(robot, physics, observation) for _ in range(num_robots)]
+        self._action_range = physics.action_range
         self._rng = np.random.default_rng()
         self._steps = np.zeros(num_robots, dtype=np.int64)
         raw_size = self.simulations[0].observation_size
@@ -113,9 +120,19 @@ class BatchedWalkerEnv(EnvBase):
         return self._output()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = tensordict.get("action").detach().cpu().double().numpy()
+        # Vectorised over the batch: target mapping and fault checks cost once per call,
+        # leaving the per-robot loop to PyBullet itself.
+        targets = joint_targets(tensordict.get("action").detach().cpu().numpy(), self._action_range)
         for i, simulation in enumerate(self.simulations):
-            self._raw[i], self._faults[i] = simulation.step(actions[i])
+            simulation.advance(targets[i])
+            self._raw[i] = simulation.read()
+        healthy = healthy_rows(self._raw)
+        self._faults = ~healthy
+        for i, simulation in enumerate(self.simulations):
+            if healthy[i]:
+                simulation.last_observation = self._raw[i].copy()
+            else:  # keep the last good observation so no NaN leaves the env
+                self._raw[i] = simulation.last_observation
         self._steps += 1
         reward = walking_reward(self._raw, self.reward_weights)
         done = self._faults | (self._steps >= self.episode_length)

@@ -76,15 +76,35 @@ class RobotSettings:
         return vertebrate(design.length, design.density, self.actuated, self.knee_angle_deg)
 
 
+def joint_targets(actions: np.ndarray, action_range: float) -> np.ndarray:
+    """Maps actions in [-1, 1] (clipped) to joint targets within +-action_range of the initial pose.
+
+    The initial pose has every joint at zero, so the target is the scaled action; works
+    on one action or a batch at once.
+    """
+    actions = np.asarray(actions, dtype=np.float64)
+    if not np.isfinite(actions).all():
+        raise ValueError(f"actions must be finite, got {actions!r}")
+    return action_range * np.clip(actions, -1.0, 1.0)
+
+
+def healthy_rows(observations: np.ndarray) -> np.ndarray:
+    """True for each observation (last axis) that is finite and within the explosion limit."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(observations).all(axis=-1) & (np.abs(observations).max(axis=-1) < EXPLOSION_LIMIT)
+
+
 class WalkerSimulation:
     """A PyBullet DIRECT client holding a plane and one robot of the current design."""
 
-    def __init__(self, robot: RobotSettings, physics: PhysicsSettings, observation: str = "thesis"):
+    def __init__(self, robot: RobotSettings, physics: PhysicsSettings, observation: str = "thesis",
+                 visuals: bool = False):
         if observation not in OBSERVATIONS:
             raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
         self.robot_settings = robot
         self.physics = physics
         self.observation_kind = observation
+        self.visuals = visuals
         self.num_actions = len(robot.actuated)
         template = robot.describe(Design(0.175, 0.5))
         self._link_names = [link.name for link in template.links]
@@ -92,39 +112,50 @@ class WalkerSimulation:
             6 * len(self._link_names) + 2 * self.num_actions
         )
         self.client = pybullet.connect(pybullet.DIRECT)
-        pybullet.setPhysicsEngineParameter(fixedTimeStep=physics.time_step, physicsClientId=self.client)
-        pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=self.client)
-        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=self.client)
-        self._plane = pybullet.createMultiBody(0.0, plane, physicsClientId=self.client)
-        pybullet.changeDynamics(self._plane, -1, lateralFriction=physics.lateral_friction,
-                                physicsClientId=self.client)
         self.body: RobotBody | None = None
         self.design: Design | None = None
         self._origin = np.zeros(2)
-        self._initial_targets = np.zeros(self.num_actions)
-        self._last_observation = np.zeros(self.observation_size)
+        self.last_observation = np.zeros(self.observation_size)
 
     # -- lifecycle -----------------------------------------------------------------
     def reset(self, design: Design) -> np.ndarray:
-        """Rebuilds the robot with ``design`` standing at the origin, facing +x."""
-        if self.body is not None:
-            pybullet.removeBody(self.body.body_id, physicsClientId=self.client)
+        """Puts a robot of ``design`` standing at the origin, facing +x.
+
+        A new design rebuilds the body; the same design again (always, under DE) restores
+        the state saved right after the last build, which is several times cheaper.
+        """
+        if self.body is not None and design == self.design:
+            pybullet.restoreState(self._built_state, physicsClientId=self.client)
+        else:
+            self._build(design)
+        self._drive(np.zeros(self.num_actions))
+        base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
+        self._origin = np.array(base_position[:2])
+        self.last_observation = self.read()
+        return self.last_observation.copy()
+
+    def _build(self, design: Design) -> None:
+        # A fresh world for every build: Bullet's results depend on the order bodies were
+        # added and removed, so rebuilding from scratch makes an episode a function of its
+        # design and actions alone (reproducible after a resume, comparable across runs).
+        client = self.client
+        pybullet.resetSimulation(physicsClientId=client)
+        pybullet.setPhysicsEngineParameter(fixedTimeStep=self.physics.time_step, physicsClientId=client)
+        pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
+        ground = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
+        plane = pybullet.createMultiBody(0.0, ground, physicsClientId=client)
+        pybullet.changeDynamics(plane, -1, lateralFriction=self.physics.lateral_friction, physicsClientId=client)
         description = self.robot_settings.describe(design)
         height = standing_height(description) + 0.005
-        self.body = load_robot(self.client, description, (0.0, 0.0, height), math.pi, self.physics.max_torque)
+        self.body = load_robot(self.client, description, (0.0, 0.0, height), math.pi, self.physics.max_torque,
+                               self.visuals)
         for link_index in self.body.link_indices.values():
             pybullet.changeDynamics(self.body.body_id, link_index, lateralFriction=self.physics.lateral_friction,
                                     physicsClientId=self.client)
         self.design = design
         self._observed = [self.body.link_index(name) for name in self.robot_settings.observed_links]
         self._all_links = [self.body.link_index(name) for name in self._link_names[1:]]
-        self._initial_targets = np.zeros(self.num_actions)
-        self._drive(self._initial_targets)
-        base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
-        self._origin = np.array(base_position[:2])
-        observation, _ = self._read()
-        self._last_observation = observation
-        return observation
+        self._built_state = pybullet.saveState(physicsClientId=self.client)
 
     def close(self) -> None:
         if self.client is not None and pybullet.isConnected(self.client):
@@ -132,26 +163,24 @@ class WalkerSimulation:
         self.client = None
 
     # -- stepping ------------------------------------------------------------------
-    def joint_targets(self, action: np.ndarray) -> np.ndarray:
-        """Maps an action in [-1, 1] (clipped) to joint targets within +-action_range of the initial pose."""
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite, got {action!r}")
-        return self._initial_targets + self.physics.action_range * np.clip(action, -1.0, 1.0)
-
     def step(self, action: np.ndarray) -> tuple[np.ndarray, bool]:
         """Applies one action for ``substeps`` physics steps; returns (observation, faulted).
 
         A faulted step (non-finite or exploding state) returns the last good observation,
         so no NaN ever reaches a policy or a replay buffer; the caller ends the episode.
         """
-        self._drive(self.joint_targets(action))
+        self.advance(joint_targets(action, self.physics.action_range))
+        observation = self.read()
+        if not healthy_rows(observation):
+            return self.last_observation.copy(), True
+        self.last_observation = observation
+        return observation, False
+
+    def advance(self, targets: np.ndarray) -> None:
+        """Sets the motor targets (rad) and runs one control period of physics."""
+        self._drive(targets)
         for _ in range(self.physics.substeps):
             pybullet.stepSimulation(physicsClientId=self.client)
-        observation, healthy = self._read()
-        if not healthy:
-            return self._last_observation.copy(), True
-        self._last_observation = observation
-        return observation, False
 
     def _drive(self, targets: np.ndarray) -> None:
         physics = self.physics
@@ -168,7 +197,8 @@ class WalkerSimulation:
         )
 
     # -- state ---------------------------------------------------------------------
-    def _read(self) -> tuple[np.ndarray, bool]:
+    def read(self) -> np.ndarray:
+        """The current observation, unchecked (see :func:`healthy_rows`)."""
         body, client = self.body.body_id, self.client
         position, _ = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
         velocity, _ = pybullet.getBaseVelocity(body, physicsClientId=client)
@@ -186,9 +216,8 @@ class WalkerSimulation:
         # Positions are measured from where the base started, as the thesis' fixed global frame.
         xyz = observation[: 6 * (1 + len(links))].reshape(-1, 6)
         xyz[:, :2] -= self._origin
-        healthy = bool(np.all(np.isfinite(observation)) and np.max(np.abs(observation)) < EXPLOSION_LIMIT)
-        return observation, healthy
+        return observation
 
     def base_position(self) -> np.ndarray:
         """Base link position relative to its start (x, y) and its height (z)."""
-        return self._last_observation[:3].copy()
+        return self.last_observation[:3].copy()

@@ -62,7 +62,8 @@ class WalkerEnv(gymnasium.Env):
         self.episode_length = int(episode_length)
         self.append_design = append_design
         self.render_mode = render_mode
-        self.simulation = WalkerSimulation(robot or RobotSettings(), physics or PhysicsSettings(), observation)
+        self.simulation = WalkerSimulation(robot or RobotSettings(), physics or PhysicsSettings(), observation,
+                                           visuals=render_mode is not None)
         size = self.simulation.observation_size + (2 if append_design else 0)
         # Faulted steps never report past the explosion limit, so the bounds are honest.
         self.observation_space = gymnasium.spaces.Box(-EXPLOSION_LIMIT, EXPLOSION_LIMIT, (size,), np.float32)

@@ -33,9 +33,13 @@ def load_robot(
     base_position: tuple[float, float, float],
     base_yaw: float,
     max_torque: float,
+    visuals: bool = False,
 ) -> RobotBody:
-    """Loads the robot through its URDF so the simulated body is exactly the exported one."""
-    urdf = to_urdf(description, max_torque)
+    """Loads the robot through its URDF so the simulated body is exactly the exported one.
+
+    Visual shapes are only needed to render; leaving them out makes loading much faster.
+    """
+    urdf = to_urdf(description, max_torque, visuals)
     handle, path = tempfile.mkstemp(suffix=".urdf", prefix="unipolicy_")
     try:
         with os.fdopen(handle, "w") as file:

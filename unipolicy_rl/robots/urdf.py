@@ -30,17 +30,12 @@ def _inertia(link: Link) -> str:
     )
 
 
-def _link(link: Link) -> str:
+def _visuals(link: Link) -> str:
+    """A cylinder and two spheres: standard URDF geometry, where <capsule> is a PyBullet extension."""
     centre = _vector((link.length / 2, 0.0, 0.0))
     along_x = _vector((0.0, math.pi / 2, 0.0))
     end = _vector((link.length, 0.0, 0.0))
-    return f"""  <link name={quoteattr(link.name)}>
-    <inertial>
-      <origin xyz="{centre}" rpy="0 0 0"/>
-      <mass value="{link.mass:.9g}"/>
-      {_inertia(link)}
-    </inertial>
-    <visual>
+    return f"""<visual>
       <origin xyz="{centre}" rpy="{along_x}"/>
       <geometry><cylinder radius="{link.radius:.9g}" length="{link.length:.9g}"/></geometry>
     </visual>
@@ -52,7 +47,19 @@ def _link(link: Link) -> str:
       <origin xyz="{end}" rpy="0 0 0"/>
       <geometry><sphere radius="{link.radius:.9g}"/></geometry>
     </visual>
-    <collision>
+    """
+
+
+def _link(link: Link, visuals: bool) -> str:
+    centre = _vector((link.length / 2, 0.0, 0.0))
+    along_x = _vector((0.0, math.pi / 2, 0.0))
+    return f"""  <link name={quoteattr(link.name)}>
+    <inertial>
+      <origin xyz="{centre}" rpy="0 0 0"/>
+      <mass value="{link.mass:.9g}"/>
+      {_inertia(link)}
+    </inertial>
+    {_visuals(link) if visuals else ""}<collision>
       <origin xyz="{centre}" rpy="{along_x}"/>
       <geometry><capsule radius="{link.radius:.9g}" length="{link.length:.9g}"/></geometry>
     </collision>
@@ -82,16 +89,22 @@ def _joint(joint: Joint, parent: Link, max_torque: float) -> str:
 """
 
 
-def to_urdf(description: RobotDescription, max_torque: float = 1.0) -> str:
-    """The robot as URDF text; joint efforts carry ``max_torque`` (N m)."""
+def to_urdf(description: RobotDescription, max_torque: float = 1.0, visuals: bool = True) -> str:
+    """The robot as URDF text; joint efforts carry ``max_torque`` (N m).
+
+    ``visuals=False`` leaves out the visual geometry: PyBullet builds renderer shapes for
+    it even in DIRECT mode, which made loading a robot six times slower (23 ms vs 4 ms),
+    a cost paid at every episode reset when the design changes.
+    """
     parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(description.name)}>\n']
-    parts += [_link(link) for link in description.links]
+    parts += [_link(link, visuals) for link in description.links]
     parts += [_joint(joint, description.link(joint.parent), max_torque) for joint in description.joints]
     parts.append("</robot>\n")
     return "".join(parts)
 
 
 def write_urdf(description: RobotDescription, path: str | Path, max_torque: float = 1.0) -> Path:
+    """Writes the full URDF (with visuals) for other tools to open."""
     path = Path(path)
     path.write_text(to_urdf(description, max_torque))
     return path
