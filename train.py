@@ -1,0 +1,187 @@
+"""Train a universal walking policy with TRPO.
+
+    python train.py                         # SE-TRPO, thesis protocol (600 epochs x 10 episodes)
+    python train.py source=de epochs=100    # any override
+    python train.py -m source=de,se seed=0,1,2
+    python train.py resume=outputs/se/seed0/<run>/checkpoint.pt
+
+Flat loop, top to bottom: collect one epoch of whole episodes, one TRPO update, log,
+checkpoint. Ends with a saved policy, a design-grid evaluation and a summary.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+import warnings
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+import tqdm
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torchrl.collectors import Collector
+
+from unipolicy_rl.checkpoint import load_checkpoint, save_checkpoint
+from unipolicy_rl.evaluation import evaluate_on_designs, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.evaluation.plots import plot_training_curve
+from unipolicy_rl.factories import make_actor_critic, make_env
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
+
+
+def epoch_seed(seed: int, epoch: int) -> int:
+    """Each epoch draws its designs from its own seed, so a resumed run sees the same robots."""
+    return int(np.random.SeedSequence([seed, epoch]).generate_state(1)[0])
+
+
+def episode_metrics(batch, control_period: float, episode_length: int) -> dict[str, float]:
+    """Mean episode reward, forward displacement (m) and speed (m/s) of the episodes that ended."""
+    done = batch["next", "done"].squeeze(-1)
+    displacement = batch["next", "observation"][..., 0][done]
+    return {
+        "train/episode_reward": batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
+        "train/forward_displacement": displacement.mean().item(),
+        "train/forward_speed": displacement.mean().item() / (episode_length * control_period),
+        "train/physics_faults": batch["next", "physics_fault"].sum().item(),
+    }
+
+
+def append_metrics_row(path: Path, epoch: int, metrics: dict[str, float]) -> None:
+    """One row per epoch in ``metrics.csv`` (appended, so a resumed run continues the file)."""
+    row = {"epoch": epoch, **metrics}
+    new = not path.is_file()
+    with path.open("a", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def training_state(epoch, actor, critic, normalizer, updater, cfg, observation_dim, action_dim) -> dict:
+    loc, scale = normalizer._get_loc_scale()
+    return {
+        "epoch": epoch,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "observation_dim": observation_dim,
+        "action_dim": action_dim,
+        "actor": actor.state_dict(),
+        "critic": critic.state_dict(),
+        "normalizer": normalizer.state_dict(),
+        "observation_loc": loc["observation"].clone(),
+        "observation_scale": scale["observation"].clone(),
+        "critic_optimizer": updater.critic_optimizer.state_dict(),
+        "critic_generator": updater.generator.get_state(),
+        "torch_rng": torch.get_rng_state(),
+    }
+
+
+def evaluate_final(cfg, checkpoint_path: Path, run_dir: Path, metrics_csv: Path | None) -> dict:
+    from unipolicy_rl.checkpoint import load_policy
+
+    loaded = load_policy(checkpoint_path)
+    designs = loaded.env_kwargs["design"].grid(cfg.evaluation.grid)
+    results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), designs,
+                                  episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
+    out = run_dir / "evaluation"
+    write_csv(results, out / "designs.csv")
+    plot_heatmaps(results, out, title=f"{cfg.source.name}-TRPO seed {cfg.seed}")
+    if metrics_csv is not None and metrics_csv.is_file():
+        plot_training_curve(metrics_csv, out / "training_curve.png")
+    return summarise(results)
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
+def main(cfg: DictConfig) -> dict:
+    torch.set_num_threads(1)  # PyBullet robots and small networks: threads only contend on 2 cores
+    # VecNorm over a batched env: we use one set of statistics for all robots (see factories).
+    warnings.filterwarnings("ignore", message="Support of VecNormV2 for containers with non-empty batch-size")
+    torch.manual_seed(cfg.seed)
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+
+    env = make_env(cfg)
+    env.set_seed(cfg.seed)  # the collector's first reset feeds the normaliser: make it reproducible
+    normalizer = env.transform[0]
+    observation_dim = env.observation_spec["observation"].shape[-1]
+    action_dim = env.action_spec.shape[-1]
+    actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
+    algo = cfg.algo
+    loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
+    loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
+    updater = TRPOUpdater(
+        loss, max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
+        backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
+        critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
+        critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
+    )
+    episode_length = cfg.robot.episode_length
+    frames_per_batch = cfg.episodes_per_epoch * episode_length
+    collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.epochs,
+                          reset_at_each_iter=True, auto_register_policy_transforms=False)
+    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
+
+    start_epoch = 0
+    if cfg.resume:
+        state = load_checkpoint(cfg.resume)
+        actor.load_state_dict(state["actor"])
+        critic.load_state_dict(state["critic"])
+        normalizer.load_state_dict(state["normalizer"])
+        updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        updater.generator.set_state(state["critic_generator"])
+        torch.set_rng_state(state["torch_rng"])
+        start_epoch = state["epoch"]
+        print(f"resumed from {cfg.resume} at epoch {start_epoch}")
+
+    logger = instantiate(cfg.logger)
+    checkpoint_path = run_dir / "checkpoint.pt"
+    metrics_csv = run_dir / "metrics.csv"
+
+    def checkpoint(epoch: int) -> Path:
+        state = training_state(epoch, actor, critic, normalizer, updater, cfg, observation_dim, action_dim)
+        return save_checkpoint(checkpoint_path, state)
+
+    epoch = start_epoch
+    progress = tqdm.tqdm(range(start_epoch, cfg.epochs), initial=start_epoch, total=cfg.epochs,
+                         disable=not cfg.progress_bar, desc=f"{cfg.source.name}-TRPO")
+    try:
+        for epoch in progress:
+            env.set_seed(epoch_seed(cfg.seed, epoch))
+            started = time.perf_counter()
+            batch = collector.rollout()
+            collected = time.perf_counter()
+            metrics = episode_metrics(batch, control_period, episode_length)
+            metrics.update(updater.update(batch))
+            metrics["time/collect"] = collected - started
+            metrics["time/update"] = time.perf_counter() - collected
+            for name, value in metrics.items():
+                logger.log_scalar(name, value, step=epoch + 1)
+            append_metrics_row(metrics_csv, epoch + 1, metrics)
+            progress.set_postfix(reward=f"{metrics['train/episode_reward']:.1f}",
+                                 metres=f"{metrics['train/forward_displacement']:.2f}",
+                                 kl=f"{metrics['train/kl']:.4f}")
+            if (epoch + 1) % cfg.checkpoint_every == 0:
+                checkpoint(epoch + 1)
+        epoch = cfg.epochs
+    except KeyboardInterrupt:
+        path = checkpoint(epoch)
+        print(f"\ninterrupted: saved epoch {epoch} to {path}; continue with resume={path}")
+        collector.shutdown()
+        return {"epoch": epoch, "checkpoint": str(path)}
+    path = checkpoint(epoch)
+    collector.shutdown()
+
+    summary = evaluate_final(cfg, path, run_dir, metrics_csv)
+    print(f"saved policy: {path}")
+    print(
+        f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}: mean forward displacement "
+        f"{summary['mean_forward_displacement']:.2f} m (min {summary['min_forward_displacement']:.2f} m), "
+        f"mean episode reward {summary['mean_episode_reward']:.1f}, "
+        f"{summary['walking_designs']}/{summary['designs']} designs walk >= 1 m"
+    )
+    return {"epoch": epoch, "checkpoint": str(path), **summary}
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,133 @@
+"""Evaluate a trained policy on a grid of robot designs.
+
+    python -m unipolicy_rl.evaluate runs/se/checkpoint.pt                 # 5 x 5 SE grid, 4 episodes each
+    python -m unipolicy_rl.evaluate CKPT --grid 7 --episodes 2 --out eval/
+
+Writes designs.csv, heatmap_reward.png and heatmap_displacement.png into --out
+(default: a folder "evaluation" next to the checkpoint) and prints a table and a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from unipolicy_rl.envs import DesignDistribution
+from unipolicy_rl.evaluation import DesignResult, evaluate_on_designs, plot_heatmaps, summarise, write_csv
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m unipolicy_rl.evaluate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("checkpoint", type=Path, help="checkpoint file written by training")
+    parser.add_argument("--grid", type=int, default=5, help="designs per axis (grid x grid designs); default 5")
+    parser.add_argument("--episodes", type=int, default=4, help="episodes per design; default 4")
+    parser.add_argument("--out", type=Path, help="output folder; default: evaluation/ next to the checkpoint")
+    parser.add_argument("--seed", type=int, default=0, help="seed for the env and for stochastic actions")
+    parser.add_argument("--length-range", type=float, nargs=2, default=(0.15, 0.20), metavar=("LOW", "HIGH"),
+                        help="link length range l (m); default the SE range 0.15 0.20")
+    parser.add_argument("--density-range", type=float, nargs=2, default=(0.4, 0.6), metavar=("LOW", "HIGH"),
+                        help="link density range rho (kg/m); default the SE range 0.4 0.6")
+    parser.add_argument("--num-robots", type=int, help="robots stepped together; default min(episodes in all, 32)")
+    parser.add_argument("--stochastic", action="store_true",
+                        help="sample actions instead of taking the policy's deterministic ones")
+    return parser
+
+
+def format_table(results: Sequence[DesignResult]) -> str:
+    """One line per design: the numbers a person reads first."""
+    lines = [f"{'l (m)':>7} {'rho':>6} {'reward':>10} {'disp (m)':>10} {'+-':>6} {'speed (m/s)':>11} {'faults':>6}"]
+    for r in results:
+        lines.append(
+            f"{r.length:7.3f} {r.density:6.3f} {r.mean_episode_reward:10.2f} {r.mean_forward_displacement:10.3f} "
+            f"{r.std_forward_displacement:6.3f} {r.mean_forward_speed:11.3f} {r.physics_faults:6d}"
+        )
+    return "\n".join(lines)
+
+
+def format_summary(summary: dict) -> str:
+    return "\n".join(
+        [
+            f"designs {summary['designs']}, episodes {summary['episodes']}, physics faults {summary['physics_faults']}",
+            f"forward displacement (m): mean {summary['mean_forward_displacement']:.3f}, "
+            f"min {summary['min_forward_displacement']:.3f}, max {summary['max_forward_displacement']:.3f}; "
+            f"mean speed {summary['mean_forward_speed']:.3f} m/s",
+            f"episode reward: mean {summary['mean_episode_reward']:.2f}, min {summary['min_episode_reward']:.2f}",
+            f"designs walking >= {summary['walking_displacement']:g} m: "
+            f"{summary['walking_designs']}/{summary['designs']}; "
+            f"worst design (l, rho) = {_pair(summary['worst_design'])}, best = {_pair(summary['best_design'])}",
+        ]
+    )
+
+
+def _pair(design: tuple[float, float]) -> str:
+    return f"({design[0]:.3f}, {design[1]:.3f})"
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """Raises ValueError / FileNotFoundError naming the bad value, before any slow work starts."""
+    if args.grid < 1:
+        raise ValueError(f"--grid must be >= 1 (designs per axis), got {args.grid}")
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.num_robots is not None and args.num_robots < 1:
+        raise ValueError(f"--num-robots must be >= 1, got {args.num_robots}")
+    if not args.checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint file not found: {args.checkpoint}")
+    # DesignDistribution names an empty or non-positive range.
+    DesignDistribution(tuple(args.length_range), tuple(args.density_range))
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Loads, evaluates, writes the CSV and heatmaps, prints; returns the summary and the paths written."""
+    torch.set_num_threads(1)  # many PyBullet robots, one core: threads only contend
+    from unipolicy_rl.checkpoint import load_policy  # imported late: argument errors come first
+
+    loaded = load_policy(args.checkpoint, device="cpu")
+    designs = DesignDistribution(tuple(args.length_range), tuple(args.density_range)).grid(args.grid)
+    results = evaluate_on_designs(
+        loaded.policy,
+        dict(loaded.env_kwargs),
+        designs,
+        episodes_per_design=args.episodes,
+        num_robots=args.num_robots,
+        seed=args.seed,
+        deterministic=not args.stochastic,
+        progress=True,
+    )
+    out_dir = args.out if args.out is not None else args.checkpoint.parent / "evaluation"
+    csv_path = write_csv(results, out_dir / "designs.csv")
+    heatmaps = plot_heatmaps(results, out_dir, title=args.checkpoint.name)
+    summary = summarise(results)
+    print(format_table(results))
+    print(format_summary(summary))
+    print(f"wrote {csv_path}, " + ", ".join(str(path) for path in heatmaps))
+    return {**summary, "csv": csv_path, "heatmaps": heatmaps}
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Programmatic entry: bad arguments raise (ValueError, FileNotFoundError) instead of exiting."""
+    args = make_parser().parse_args(argv)
+    check_arguments(args)
+    return run(args)
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    """Command-line entry: a bad argument or a missing file is a one-line usage error, not a traceback."""
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    try:
+        check_arguments(args)
+    except (ValueError, FileNotFoundError) as error:
+        parser.error(str(error))
+    run(args)
+
+
+if __name__ == "__main__":
+    cli()

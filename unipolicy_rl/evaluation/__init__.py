@@ -1,0 +1,28 @@
+"""Evaluation: a policy on a grid of designs (CSV, summary) and the pictures that go with it."""
+
+from unipolicy_rl.evaluation.grid import (
+    CSV_COLUMNS,
+    WALKING_DISPLACEMENT,
+    DesignResult,
+    episode_outcomes,
+    evaluate_on_designs,
+    read_csv,
+    rollout_designs,
+    summarise,
+    write_csv,
+)
+from unipolicy_rl.evaluation.plots import plot_heatmaps, plot_training_curve
+
+__all__ = [
+    "CSV_COLUMNS",
+    "WALKING_DISPLACEMENT",
+    "DesignResult",
+    "episode_outcomes",
+    "evaluate_on_designs",
+    "plot_heatmaps",
+    "plot_training_curve",
+    "read_csv",
+    "rollout_designs",
+    "summarise",
+    "write_csv",
+]

@@ -1,0 +1,232 @@
+"""Evaluate one policy on a grid of robot designs, in metres as well as reward.
+
+A universal policy is judged by how it walks across the whole (l, rho) range, not on
+the design it happened to train on most. Every (design, episode) pair runs through one
+``BatchedWalkerEnv``: each batch resets its robots with explicit designs and rolls out
+exactly one episode, so the robots of a batch walk side by side at physics speed.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from unipolicy_rl.envs import BatchedWalkerEnv, Design
+from unipolicy_rl.envs.reward import BASE_X
+
+# A design "walks" when its base gets at least this far forward in one episode (m).
+WALKING_DISPLACEMENT = 1.0
+DEFAULT_MAX_ROBOTS = 32
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """Episode statistics of one design; std is the population std (0 for one episode)."""
+
+    length: float
+    density: float
+    episodes: int
+    mean_episode_reward: float
+    std_episode_reward: float
+    mean_forward_displacement: float  # m, base x at the episode's last step
+    std_forward_displacement: float  # m
+    mean_forward_speed: float  # m/s, displacement / episode duration
+    physics_faults: int  # episodes cut short because the simulation blew up
+
+    @property
+    def design(self) -> Design:
+        return Design(self.length, self.density)
+
+
+def rollout_designs(env: BatchedWalkerEnv, policy, designs: Sequence[Design]) -> TensorDictBase:
+    """Resets every robot of ``env`` to its own design and rolls out exactly one episode.
+
+    Returns the rollout, shape [num_robots, steps]. A robot that finishes early (a physics
+    fault) has its later entries frozen at its last step by TorchRL's partial-step logic;
+    :func:`episode_outcomes` reads each robot up to its own first ``done`` either way.
+    """
+    num_robots = env.batch_size[0]
+    if len(designs) != num_robots:
+        raise ValueError(f"need one design per robot: got {len(designs)} designs for {num_robots} robots")
+    # float64, not the spec's float32: the env builds the robot from these numbers, and
+    # 0.15 should stay 0.15 rather than become 0.15000000596.
+    requested = torch.tensor([(d.length, d.density) for d in designs], dtype=torch.float64, device=env.device)
+    reset_request = TensorDict({"design": requested}, batch_size=env.batch_size, device=env.device)
+    start = env.reset(reset_request)
+    return env.rollout(
+        env.episode_length,
+        policy,
+        auto_reset=False,
+        tensordict=start,
+        break_when_any_done=False,  # one robot's fault must not cut the others' episodes short
+        break_when_all_done=True,
+    )
+
+
+def episode_outcomes(rollout: TensorDictBase, control_period: float) -> dict[str, torch.Tensor]:
+    """Per-robot episode reward, forward displacement (m), mean speed (m/s), steps and fault flag."""
+    done = rollout["next", "done"].squeeze(-1)  # [robots, steps]
+    if not bool(done.any(-1).all()):
+        raise RuntimeError("every robot's episode must end within the rollout; was it cut short?")
+    steps_taken = torch.arange(done.shape[-1], device=done.device)
+    # Index of each robot's first done: later entries belong to no episode.
+    last = torch.where(done, steps_taken, done.shape[-1]).min(-1).values
+    in_episode = steps_taken <= last.unsqueeze(-1)
+    rows = torch.arange(done.shape[0], device=done.device)
+    reward = (rollout["next", "reward"].squeeze(-1) * in_episode).sum(-1)
+    displacement = rollout["next", "observation"][rows, last, BASE_X]
+    steps = last + 1
+    return {
+        "episode_reward": reward.double().cpu(),
+        "forward_displacement": displacement.double().cpu(),
+        "forward_speed": (displacement.double() / (steps.double() * control_period)).cpu(),
+        "steps": steps.cpu(),
+        "physics_fault": rollout["next", "physics_fault"].squeeze(-1)[rows, last].cpu(),
+    }
+
+
+def _check_designs_were_used(rollout: TensorDictBase, designs: Sequence[Design]) -> None:
+    # A wrapper that drops the reset's "design" key would silently evaluate random
+    # designs under the requested labels; this guard makes that loud.
+    requested = torch.tensor([(d.length, d.density) for d in designs], dtype=torch.float32)
+    used = rollout["design"][:, 0].cpu()
+    if not torch.allclose(used, requested):
+        raise RuntimeError(
+            f"the env did not use the requested designs: asked {requested.tolist()}, got {used.tolist()}"
+        )
+
+
+def evaluate_on_designs(
+    policy,
+    env_kwargs: dict,
+    designs: Sequence[Design],
+    episodes_per_design: int = 4,
+    num_robots: int | None = None,
+    seed: int = 0,
+    deterministic: bool = True,
+    progress: bool = False,
+) -> list[DesignResult]:
+    """Runs ``episodes_per_design`` episodes of ``policy`` on each design; one result per design, in order.
+
+    ``policy`` reads "observation" and writes "action" (a TensorDict module). Actions are
+    the policy's deterministic ones unless ``deterministic=False``; with deterministic
+    actions the physics is deterministic too, so repeated episodes of a design coincide
+    and more than one episode only matters for stochastic actions.
+    """
+    if not (isinstance(episodes_per_design, int) and episodes_per_design >= 1):
+        raise ValueError(f"episodes_per_design must be a positive integer, got {episodes_per_design!r}")
+    if not designs:
+        raise ValueError("designs is empty: nothing to evaluate")
+    if "num_robots" in env_kwargs:
+        raise ValueError("env_kwargs must not set num_robots: pass it as evaluate_on_designs(num_robots=...)")
+    pairs = [design for design in designs for _ in range(episodes_per_design)]
+    num_robots = num_robots or min(len(pairs), DEFAULT_MAX_ROBOTS)
+    if not (isinstance(num_robots, int) and num_robots >= 1):
+        raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
+
+    env = BatchedWalkerEnv(num_robots=num_robots, **env_kwargs)
+    env.set_seed(seed)
+    outcomes = []
+    batches = range(0, len(pairs), num_robots)
+    if progress:
+        from tqdm.auto import tqdm
+
+        batches = tqdm(batches, desc="evaluating designs", unit="batch")
+    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    try:
+        with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(exploration):
+            torch.manual_seed(seed)
+            for start in batches:
+                batch = pairs[start : start + num_robots]
+                # The last batch may be short: pad it with copies of its last design and drop them after.
+                padded = batch + [batch[-1]] * (num_robots - len(batch))
+                rollout = rollout_designs(env, policy, padded)
+                _check_designs_were_used(rollout, padded)
+                outcome = episode_outcomes(rollout, env.control_period)
+                outcomes.append({key: value[: len(batch)] for key, value in outcome.items()})
+    finally:
+        env.close()
+    merged = {key: torch.cat([outcome[key] for outcome in outcomes]) for key in outcomes[0]}
+    return [
+        _summarise_design(design, {key: value[i * episodes_per_design : (i + 1) * episodes_per_design]
+                                   for key, value in merged.items()})
+        for i, design in enumerate(designs)
+    ]
+
+
+def _summarise_design(design: Design, episodes: dict[str, torch.Tensor]) -> DesignResult:
+    reward, displacement = episodes["episode_reward"], episodes["forward_displacement"]
+    return DesignResult(
+        length=float(design.length),
+        density=float(design.density),
+        episodes=len(reward),
+        mean_episode_reward=reward.mean().item(),
+        std_episode_reward=reward.std(correction=0).item(),
+        mean_forward_displacement=displacement.mean().item(),
+        std_forward_displacement=displacement.std(correction=0).item(),
+        mean_forward_speed=episodes["forward_speed"].mean().item(),
+        physics_faults=int(episodes["physics_fault"].sum()),
+    )
+
+
+# -- CSV -------------------------------------------------------------------------------
+CSV_COLUMNS = tuple(field.name for field in fields(DesignResult))
+
+
+def write_csv(results: Sequence[DesignResult], path: str | Path) -> Path:
+    """One row per design, columns :data:`CSV_COLUMNS`, full float precision."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for result in results:
+            writer.writerow({key: repr(value) if isinstance(value, float) else value
+                             for key, value in asdict(result).items()})
+    return path
+
+
+def read_csv(path: str | Path) -> list[DesignResult]:
+    """Reads what :func:`write_csv` wrote (to re-plot or compare runs without re-evaluating)."""
+    types = {field.name: (int if field.type in ("int", int) else float) for field in fields(DesignResult)}
+    with Path(path).open(newline="") as handle:
+        return [DesignResult(**{key: types[key](row[key]) for key in CSV_COLUMNS}) for row in csv.DictReader(handle)]
+
+
+# -- summary ---------------------------------------------------------------------------
+def summarise(results: Sequence[DesignResult], walking_displacement: float = WALKING_DISPLACEMENT) -> dict:
+    """Grid-level numbers for a log line or a sweep table: how well, and how evenly, the policy walks."""
+    if not results:
+        raise ValueError("results is empty: nothing to summarise")
+    displacement = [r.mean_forward_displacement for r in results]
+    reward = [r.mean_episode_reward for r in results]
+    worst = min(results, key=lambda r: r.mean_forward_displacement)
+    best = max(results, key=lambda r: r.mean_forward_displacement)
+    walking = sum(d >= walking_displacement for d in displacement)
+    return {
+        "designs": len(results),
+        "episodes": sum(r.episodes for r in results),
+        "mean_forward_displacement": _mean(displacement),
+        "min_forward_displacement": min(displacement),
+        "max_forward_displacement": max(displacement),
+        "mean_forward_speed": _mean([r.mean_forward_speed for r in results]),
+        "mean_episode_reward": _mean(reward),
+        "min_episode_reward": min(reward),
+        "walking_designs": walking,  # cells with mean displacement >= walking_displacement
+        "walking_fraction": walking / len(results),
+        "walking_displacement": walking_displacement,
+        "physics_faults": sum(r.physics_faults for r in results),
+        "worst_design": (worst.length, worst.density),
+        "best_design": (best.length, best.density),
+    }
+
+
+def _mean(values: Sequence[float]) -> float:
+    return math.fsum(values) / len(values)

@@ -1,0 +1,125 @@
+"""Policy and value networks for TRPO, built as TorchRL modules.
+
+Both factories return ordinary TorchRL operators (``ProbabilisticActor``, ``ValueOperator``)
+so that collectors, value estimators and :class:`~unipolicy_rl.objectives.TRPOLoss` can use
+them without adapters. The defaults (64x64 tanh, orthogonal initialisation, state-independent
+log-std starting at 0) are the ones used by stable-baselines3 and CleanRL for on-policy
+continuous control, so results are comparable with theirs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from torch import nn
+from torchrl.data import TensorSpec
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+
+__all__ = ["make_actor", "make_critic", "make_mlp"]
+
+_ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "elu": nn.ELU,
+    "silu": nn.SiLU,
+}
+
+
+def make_mlp(
+    in_features: int,
+    out_features: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    output_gain: float = 1.0,
+) -> nn.Sequential:
+    """A plain ``nn.Sequential`` MLP with orthogonal initialisation.
+
+    Hidden layers use gain sqrt(2) and zero bias (the PPO/TRPO "implementation details" that
+    keep early activations in tanh's linear range); the output layer takes ``output_gain``
+    so the policy can start near a zero mean (small gain) while the critic keeps full scale.
+    An empty ``hidden_sizes`` gives a single linear layer (a linear policy).
+    """
+    try:
+        activation_class = _ACTIVATIONS[activation]
+    except KeyError as err:
+        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(_ACTIVATIONS)}") from err
+    layers: list[nn.Module] = []
+    width = in_features
+    for hidden in hidden_sizes:
+        layers += [_orthogonal_linear(width, hidden, gain=math.sqrt(2.0)), activation_class()]
+        width = hidden
+    layers.append(_orthogonal_linear(width, out_features, gain=output_gain))
+    return nn.Sequential(*layers)
+
+
+def make_actor(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    init_log_std: float = 0.0,
+    *,
+    observation_key: str = "observation",
+    action_spec: TensorSpec | None = None,
+) -> ProbabilisticActor:
+    """Gaussian policy ``observation -> (loc, scale) -> action`` with a state-independent std.
+
+    Why this shape:
+
+    * The log-std is a free parameter vector (``AddStateIndependentNormalScale``), not a network
+      output. It is a real ``nn.Parameter`` of the actor, so TRPO's natural-gradient step moves
+      it together with the mean (a known TRPO bug is a log-std that silently stays out of the
+      optimised parameters).
+    * ``IndependentNormal`` (untransformed Gaussian, no tanh squashing) keeps the KL between
+      policies analytic, which TRPO's Fisher-vector product and trust-region check rely on.
+      The environment clips actions to its bounds.
+    * ``return_log_prob=True`` stores ``action_log_prob`` and the ``loc``/``scale`` of the
+      behaviour policy in every collected step; the loss needs both (importance ratio and the
+      KL to the old policy).
+    * ``init_log_std=0`` (std 1) matches stable-baselines3 and CleanRL defaults.
+    * Exploration is on by default (actions are sampled); evaluate deterministically (the
+      mean) under ``torchrl.envs.utils.set_exploration_type(ExplorationType.DETERMINISTIC)``.
+    """
+    mean_network = make_mlp(observation_dim, action_dim, hidden_sizes, activation, output_gain=0.01)
+    log_std = AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=init_log_std)
+    parameters_module = TensorDictModule(
+        nn.Sequential(mean_network, log_std),
+        in_keys=[observation_key],
+        out_keys=["loc", "scale"],
+    )
+    return ProbabilisticActor(
+        parameters_module,
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def make_critic(
+    observation_dim: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    *,
+    observation_key: str = "observation",
+) -> ValueOperator:
+    """State-value network ``observation -> state_value`` for GAE and the critic loss.
+
+    Kept separate from the actor (no shared trunk) so the critic's Adam updates cannot move the
+    policy outside the trust region TRPO just enforced.
+    """
+    return ValueOperator(
+        make_mlp(observation_dim, 1, hidden_sizes, activation, output_gain=1.0),
+        in_keys=[observation_key],
+    )
+
+
+def _orthogonal_linear(in_features: int, out_features: int, gain: float) -> nn.Linear:
+    layer = nn.Linear(in_features, out_features)
+    nn.init.orthogonal_(layer.weight, gain=gain)
+    nn.init.zeros_(layer.bias)
+    return layer
