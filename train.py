@@ -12,6 +12,7 @@ checkpoint. Ends with a saved policy, a design-grid evaluation and a summary.
 from __future__ import annotations
 
 import csv
+import signal
 import time
 import warnings
 from pathlib import Path
@@ -26,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 
 from unipolicy_rl.checkpoint import load_checkpoint, save_checkpoint
+from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.evaluation import evaluate_on_designs, plot_heatmaps, summarise, write_csv
 from unipolicy_rl.evaluation.plots import plot_training_curve
 from unipolicy_rl.factories import make_actor_critic, make_env
@@ -82,7 +84,8 @@ def evaluate_final(cfg, checkpoint_path: Path, run_dir: Path, metrics_csv: Path 
     from unipolicy_rl.checkpoint import load_policy
 
     loaded = load_policy(checkpoint_path)
-    designs = loaded.env_kwargs["design"].grid(cfg.evaluation.grid)
+    grid = cfg.evaluation
+    designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
     results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), designs,
                                   episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
     out = run_dir / "evaluation"
@@ -91,6 +94,32 @@ def evaluate_final(cfg, checkpoint_path: Path, run_dir: Path, metrics_csv: Path 
     if metrics_csv is not None and metrics_csv.is_file():
         plot_training_curve(metrics_csv, out / "training_curve.png")
     return summarise(results)
+
+
+class StopAtEpochEnd:
+    """Ctrl-C or SIGTERM (``kill``, a scheduler's pre-emption) asks the loop to stop after the
+    epoch in progress, so the checkpoint it then writes holds whole epochs and resumes exactly.
+    A second signal stops at once (keeping the last periodic checkpoint)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous = {}
+
+    def __enter__(self) -> StopAtEpochEnd:
+        self._previous = {number: signal.signal(number, self._request) for number in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+    def _request(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n{signal.Signals(signum).name}: stopping after this epoch (again to stop now)", flush=True)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
@@ -145,7 +174,7 @@ def main(cfg: DictConfig) -> dict:
     epoch = start_epoch
     progress = tqdm.tqdm(range(start_epoch, cfg.epochs), initial=start_epoch, total=cfg.epochs,
                          disable=not cfg.progress_bar, desc=f"{cfg.source.name}-TRPO")
-    try:
+    with StopAtEpochEnd() as stop:
         for epoch in progress:
             env.set_seed(epoch_seed(cfg.seed, epoch))
             started = time.perf_counter()
@@ -161,14 +190,14 @@ def main(cfg: DictConfig) -> dict:
             progress.set_postfix(reward=f"{metrics['train/episode_reward']:.1f}",
                                  metres=f"{metrics['train/forward_displacement']:.2f}",
                                  kl=f"{metrics['train/kl']:.4f}")
-            if (epoch + 1) % cfg.checkpoint_every == 0:
+            if (epoch + 1) % cfg.checkpoint_every == 0 or stop.requested:
                 checkpoint(epoch + 1)
-        epoch = cfg.epochs
-    except KeyboardInterrupt:
-        path = checkpoint(epoch)
-        print(f"\ninterrupted: saved epoch {epoch} to {path}; continue with resume={path}")
-        collector.shutdown()
-        return {"epoch": epoch, "checkpoint": str(path)}
+            if stop.requested:
+                progress.close()
+                collector.shutdown()
+                print(f"stopped: saved epoch {epoch + 1} to {checkpoint_path}; continue with resume={checkpoint_path}")
+                return {"epoch": epoch + 1, "checkpoint": str(checkpoint_path)}
+    epoch = cfg.epochs
     path = checkpoint(epoch)
     collector.shutdown()
 

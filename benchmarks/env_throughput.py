@@ -3,9 +3,12 @@
     python benchmarks/env_throughput.py [--actions 3000] [--repeats 3]
 
 Every variant runs the DE robot, 16 physics steps per action, uniform random actions,
-100-action episodes (the envs rebuild the robot at every reset, as training does; the
-raw loop only steps). Prints actions/s (median of the repeats) and each ratio to the
-raw loop; the last line is ``env_throughput_ratio: <batched N=32 / raw>``.
+100-action episodes on the same world (plane, friction, motors). The raw loop is the
+physics alone: motor command, 16 ``stepSimulation`` calls, a state restore per episode.
+Prints actions/s (median of the repeats) and each ratio to the raw loop, then how two
+worker processes compare with one process (TorchRL's stock ``ParallelEnv``, which
+spin-waits, and our ``SleepingParallelEnv``); the last line is
+``env_throughput_ratio: <batched N=32 / raw>``.
 """
 
 from __future__ import annotations
@@ -20,35 +23,48 @@ import pybullet
 import torch
 from torchrl.envs import ParallelEnv
 
-from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, PhysicsSettings, RobotSettings, WalkerEnv
-from unipolicy_rl.robots import load_robot, standing_height
+from unipolicy_rl.envs import (
+    BatchedWalkerEnv,
+    DesignDistribution,
+    PhysicsSettings,
+    RobotSettings,
+    WalkerEnv,
+    WalkerSimulation,
+)
+from unipolicy_rl.envs.parallel import SleepingParallelEnv
 
 DE = DesignDistribution.fixed(0.175, 0.5)
 
 
-def raw_pybullet(actions: int) -> float:
-    """The physics limit: motor command plus 16 stepSimulation calls per action, nothing else."""
-    physics, robot = PhysicsSettings(), RobotSettings()
-    client = pybullet.connect(pybullet.DIRECT)
-    pybullet.setGravity(0, 0, -9.81, physicsClientId=client)
-    pybullet.setPhysicsEngineParameter(fixedTimeStep=physics.time_step, physicsClientId=client)
-    pybullet.createMultiBody(0, pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client),
-                             physicsClientId=client)
-    description = robot.describe(DE.mean)
-    body = load_robot(client, description, (0, 0, standing_height(description) + 0.005), np.pi, physics.max_torque)
-    n = len(body.actuated_joint_indices)
-    targets = np.random.default_rng(0).uniform(-1.5, 1.5, (actions, n)).tolist()
+def raw_pybullet(actions: int, episode_length: int = 100) -> float:
+    """The physics limit: motor command plus 16 stepSimulation calls per action, nothing else.
+
+    The world (plane, robot, friction) is built by the env's own simulation class, untimed,
+    so both sides simulate the same contacts; episodes end every ``episode_length``
+    actions with a ``restoreState`` to the standing robot, as the envs' DE resets do.
+    A robot that is never reset ends up lying still, which is cheaper to simulate.
+    """
+    physics = PhysicsSettings()
+    simulation = WalkerSimulation(RobotSettings(), physics)
+    simulation.reset(DE.mean)
+    client, body = simulation.client, simulation.body
+    standing = pybullet.saveState(physicsClientId=client)
+    joints, n = body.actuated_joint_indices, len(body.actuated_joint_indices)
+    targets = np.random.default_rng(0).uniform(-physics.action_range, physics.action_range, (actions, n)).tolist()
+    forces, position_gains, velocity_gains = ([value] * n for value in
+                                              (physics.max_torque, physics.position_gain, physics.velocity_gain))
     start = time.perf_counter()
-    for target in targets:
+    for step, target in enumerate(targets):
+        if step % episode_length == 0:
+            pybullet.restoreState(standing, physicsClientId=client)
         pybullet.setJointMotorControlArray(
-            body.body_id, body.actuated_joint_indices, pybullet.POSITION_CONTROL, targetPositions=target,
-            forces=[physics.max_torque] * n, positionGains=[physics.position_gain] * n,
-            velocityGains=[physics.velocity_gain] * n, physicsClientId=client,
+            body.body_id, joints, pybullet.POSITION_CONTROL, targetPositions=target, forces=forces,
+            positionGains=position_gains, velocityGains=velocity_gains, physicsClientId=client,
         )
         for _ in range(physics.substeps):
             pybullet.stepSimulation(physicsClientId=client)
     elapsed = time.perf_counter() - start
-    pybullet.disconnect(client)
+    simulation.close()
     return actions / elapsed
 
 
@@ -91,10 +107,13 @@ def main() -> None:
             f"BatchedWalkerEnv N={n}": functools.partial(torchrl_env, functools.partial(BatchedWalkerEnv, n, DE))
             for n in (1, 8, 32)
         },
-        "ParallelEnv 2 workers x N=16": functools.partial(
-            torchrl_env,
-            lambda: ParallelEnv(2, functools.partial(BatchedWalkerEnv, 16, DE), mp_start_method="fork"),
-        ),
+        **{
+            f"{cls.__name__} 2 workers x N={n}": functools.partial(
+                torchrl_env,
+                functools.partial(cls, 2, functools.partial(BatchedWalkerEnv, n, DE), mp_start_method="fork"),
+            )
+            for cls, n in ((ParallelEnv, 16), (SleepingParallelEnv, 16), (SleepingParallelEnv, 32))
+        },
     }
     rates = {name: [] for name in variants}
     for _ in range(args.repeats):  # interleave repeats so drift in machine load hits every variant
@@ -102,12 +121,13 @@ def main() -> None:
             rates[name].append(run(args.actions))
     medians = {name: statistics.median(values) for name, values in rates.items()}
     raw = medians["raw PyBullet loop"]
-    print(f"{'variant':32s} {'actions/s':>10s} {'x raw':>7s}")
+    print(f"{'variant':40s} {'actions/s':>10s} {'x raw':>7s}")
     for name, rate in medians.items():
-        print(f"{name:32s} {rate:10.0f} {rate / raw:7.3f}")
+        print(f"{name:40s} {rate:10.0f} {rate / raw:7.3f}")
     single = medians["BatchedWalkerEnv N=32"]
-    parallel = medians["ParallelEnv 2 workers x N=16"]
-    print(f"ParallelEnv (2 cores) / BatchedWalkerEnv N=32 (1 core): {parallel / single:.3f}")
+    for name in medians:
+        if "2 workers" in name:
+            print(f"{name} / BatchedWalkerEnv N=32 (2 cores / 1 core): {medians[name] / single:.3f}")
     print(f"env_throughput_ratio: {single / raw:.3f}")
 
 

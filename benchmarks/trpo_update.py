@@ -36,6 +36,8 @@ import argparse
 import statistics
 import time
 import warnings
+from collections.abc import Callable
+from typing import TypeVar
 
 import gymnasium as gym
 import numpy as np
@@ -45,12 +47,13 @@ from tensordict import TensorDict
 from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
 
+T = TypeVar("T")
+
 OBSERVATION_DIM = 18
 ACTION_DIM = 4
 EPISODE_LENGTH = 100
-SETTINGS = {
-    "hidden_sizes": (64, 64),
-    "activation": "tanh",
+NETWORK = {"hidden_sizes": (64, 64), "activation": "tanh"}
+UPDATE = {
     "cg_iters": 10,
     "damping": 0.1,
     "max_kl": 0.01,
@@ -59,32 +62,41 @@ SETTINGS = {
     "critic_epochs": 10,
     "critic_minibatch_size": 128,
     "critic_lr": 1e-3,
-    "gamma": 0.99,
-    "gae_lambda": 0.95,
 }
+RETURNS = {"gamma": 0.99, "gae_lambda": 0.95}
+SETTINGS = {**NETWORK, **UPDATE, **RETURNS}
+TORCH_ACTIVATIONS = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
+
+
+def random_rollout(envs: int, steps: int, generator: torch.Generator) -> TensorDict:
+    """Random observations, next observations and rewards shaped ``[envs, steps]``.
+
+    An episode ends every EPISODE_LENGTH steps. Actions are left out: each side samples them
+    from its own policy, so the importance ratio starts at 1, as after a real rollout.
+    """
+    done = torch.zeros(envs, steps, 1, dtype=torch.bool)
+    done[:, EPISODE_LENGTH - 1 :: EPISODE_LENGTH] = True
+    return TensorDict(
+        observation=torch.randn(envs, steps, OBSERVATION_DIM, generator=generator),
+        next=TensorDict(
+            observation=torch.randn(envs, steps, OBSERVATION_DIM, generator=generator),
+            reward=torch.randn(envs, steps, 1, generator=generator),
+            done=done,
+            terminated=done.clone(),
+            batch_size=[envs, steps],
+        ),
+        batch_size=[envs, steps],
+    )
+
+
+def timed(function: Callable[..., T], *args: object) -> tuple[float, float, T]:
+    """Wall-clock and process CPU seconds of ``function(*args)``, and its result."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    result = function(*args)
+    return time.perf_counter() - wall, time.process_time() - cpu, result
 
 
 # ----------------------------------------------------------------------------------------- ours
-def make_our_batch(actor, samples: int, generator: torch.Generator) -> TensorDict:
-    """Random observations, actions sampled from ``actor``, episodes of EPISODE_LENGTH steps."""
-    envs = max(samples // 1000, 1)
-    steps = samples // envs
-    observation = torch.randn(envs, steps, OBSERVATION_DIM, generator=generator)
-    batch = TensorDict(observation=observation, batch_size=[envs, steps])
-    with torch.no_grad():
-        actor(batch)
-    done = torch.zeros(envs, steps, 1, dtype=torch.bool)
-    done[:, EPISODE_LENGTH - 1 :: EPISODE_LENGTH] = True
-    batch["next"] = TensorDict(
-        observation=torch.randn(envs, steps, OBSERVATION_DIM, generator=generator),
-        reward=torch.randn(envs, steps, 1, generator=generator),
-        done=done,
-        terminated=done.clone(),
-        batch_size=[envs, steps],
-    )
-    return batch
-
-
 class OurUpdate:
     """Our TRPOUpdater on fresh TensorDict batches; ``run()`` times one update."""
 
@@ -92,30 +104,19 @@ class OurUpdate:
 
     def __init__(self, samples: int) -> None:
         torch.manual_seed(0)
-        self.samples = samples
+        self.envs = max(samples // 1000, 1)
+        self.steps = samples // self.envs
         self.generator = torch.Generator().manual_seed(0)
-        self.actor = make_actor(OBSERVATION_DIM, ACTION_DIM, SETTINGS["hidden_sizes"], SETTINGS["activation"])
-        critic = make_critic(OBSERVATION_DIM, SETTINGS["hidden_sizes"], SETTINGS["activation"])
-        loss = TRPOLoss(self.actor, critic)
-        loss.make_value_estimator(gamma=SETTINGS["gamma"], lmbda=SETTINGS["gae_lambda"])
-        self.updater = TRPOUpdater(
-            loss,
-            max_kl=SETTINGS["max_kl"],
-            damping=SETTINGS["damping"],
-            cg_iters=SETTINGS["cg_iters"],
-            backtrack_factor=SETTINGS["backtrack_factor"],
-            max_backtracks=SETTINGS["max_backtracks"],
-            critic_lr=SETTINGS["critic_lr"],
-            critic_epochs=SETTINGS["critic_epochs"],
-            critic_minibatch_size=SETTINGS["critic_minibatch_size"],
-            generator=self.generator,
-        )
+        self.actor = make_actor(OBSERVATION_DIM, ACTION_DIM, **NETWORK)
+        loss = TRPOLoss(self.actor, make_critic(OBSERVATION_DIM, **NETWORK))
+        loss.make_value_estimator(gamma=RETURNS["gamma"], lmbda=RETURNS["gae_lambda"])
+        self.updater = TRPOUpdater(loss, **UPDATE, generator=self.generator)
 
     def run(self) -> tuple[float, float, str]:
-        batch = make_our_batch(self.actor, self.samples, self.generator)
-        wall, cpu = time.perf_counter(), time.process_time()
-        metrics = self.updater.update(batch)
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        batch = random_rollout(self.envs, self.steps, self.generator)
+        with torch.no_grad():
+            self.actor(batch)
+        wall, cpu, metrics = timed(self.updater.update, batch)
         note = (
             f"accepted={metrics['train/step_accepted']:.0f}"
             f" tries={metrics['train/line_search_tries']:.0f} kl={metrics['train/kl']:.4f}"
@@ -138,21 +139,20 @@ class _BoxEnv(gym.Env):
         return np.zeros(OBSERVATION_DIM, np.float32), 0.0, False, False, {}
 
 
-def fill_sb3_buffer(model, samples: int, rng: np.random.Generator) -> None:
-    """Fill the rollout buffer as a rollout of ``samples`` steps would, without an env."""
+def fill_sb3_buffer(model, rollout: TensorDict) -> None:
+    """Fill the rollout buffer from a one-env ``rollout``, as collecting it would have."""
     buffer = model.rollout_buffer
     buffer.reset()
-    observations = rng.standard_normal((samples, 1, OBSERVATION_DIM)).astype(np.float32)
+    observations = rollout["observation"][0]
     with torch.no_grad():
-        actions, values, log_probs = model.policy(torch.as_tensor(observations[:, 0]))
-    buffer.observations[:] = observations
-    buffer.actions[:] = actions.numpy()[:, None]
+        actions, values, log_probs = model.policy(observations)
+    buffer.observations[:] = observations[:, None].numpy()
+    buffer.actions[:] = actions[:, None].numpy()
     buffer.values[:] = values.numpy()
-    buffer.log_probs[:] = log_probs.numpy()[:, None]
-    buffer.rewards[:] = rng.standard_normal((samples, 1)).astype(np.float32)
-    buffer.episode_starts[:] = 0.0
+    buffer.log_probs[:] = log_probs[:, None].numpy()
+    buffer.rewards[:] = rollout["next", "reward"][0].numpy()
     buffer.episode_starts[::EPISODE_LENGTH] = 1.0
-    buffer.pos = samples
+    buffer.pos = buffer.buffer_size
     buffer.full = True
     buffer.compute_returns_and_advantage(last_values=torch.zeros(1), dones=np.ones(1))
 
@@ -167,38 +167,33 @@ class SB3Update:
         from stable_baselines3.common.logger import Logger
 
         self.samples = samples
+        self.generator = torch.Generator().manual_seed(0)
         self.model = TRPO(
             "MlpPolicy",
             _BoxEnv(),
-            learning_rate=SETTINGS["critic_lr"],
+            learning_rate=UPDATE["critic_lr"],
             n_steps=samples,
-            batch_size=SETTINGS["critic_minibatch_size"],
-            gamma=SETTINGS["gamma"],
-            gae_lambda=SETTINGS["gae_lambda"],
-            cg_max_steps=SETTINGS["cg_iters"],
-            cg_damping=SETTINGS["damping"],
-            line_search_shrinking_factor=SETTINGS["backtrack_factor"],
-            line_search_max_iter=SETTINGS["max_backtracks"],
-            n_critic_updates=SETTINGS["critic_epochs"],
-            target_kl=SETTINGS["max_kl"],
+            batch_size=UPDATE["critic_minibatch_size"],
+            gamma=RETURNS["gamma"],
+            gae_lambda=RETURNS["gae_lambda"],
+            cg_max_steps=UPDATE["cg_iters"],
+            cg_damping=UPDATE["damping"],
+            line_search_shrinking_factor=UPDATE["backtrack_factor"],
+            line_search_max_iter=UPDATE["max_backtracks"],
+            n_critic_updates=UPDATE["critic_epochs"],
+            target_kl=UPDATE["max_kl"],
             policy_kwargs={
-                "net_arch": {
-                    "pi": list(SETTINGS["hidden_sizes"]),
-                    "vf": list(SETTINGS["hidden_sizes"]),
-                },
-                "activation_fn": torch.nn.Tanh,
+                "net_arch": {"pi": list(NETWORK["hidden_sizes"]), "vf": list(NETWORK["hidden_sizes"])},
+                "activation_fn": TORCH_ACTIVATIONS[NETWORK["activation"]],
             },
             device="cpu",
             seed=0,
         )
         self.model.set_logger(Logger(folder=None, output_formats=[]))
-        self.rng = np.random.default_rng(0)
 
     def run(self) -> tuple[float, float, str]:
-        fill_sb3_buffer(self.model, self.samples, self.rng)
-        wall, cpu = time.perf_counter(), time.process_time()
-        self.model.train()
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        fill_sb3_buffer(self.model, random_rollout(1, self.samples, self.generator))
+        wall, cpu, _ = timed(self.model.train)
         success = self.model.logger.name_to_value.get("train/is_line_search_success", float("nan"))
         return wall, cpu, f"accepted={success:.0f}"
 

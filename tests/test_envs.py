@@ -1,5 +1,9 @@
 """WalkerEnv (gymnasium) and BatchedWalkerEnv (TorchRL): checkers, determinism, faults, bad input."""
 
+import functools
+import threading
+import time
+
 import gymnasium
 import numpy as np
 import pybullet
@@ -21,6 +25,7 @@ from unipolicy_rl.envs import (
     walking_reward,
 )
 from unipolicy_rl.envs.gait import SineGait, walk
+from unipolicy_rl.envs.parallel import SleepingParallelEnv
 
 
 def test_gymnasium_checker_passes():
@@ -169,13 +174,54 @@ def test_partial_reset_rebuilds_only_masked_robots():
     env.close()
 
 
-def test_parallel_env_runs_batched_workers():
-    env = ParallelEnv(2, lambda: BatchedWalkerEnv(2), mp_start_method="spawn")
+def _sleeping_parallel(num_robots: int = 2) -> SleepingParallelEnv:
+    return SleepingParallelEnv(2, functools.partial(BatchedWalkerEnv, num_robots), mp_start_method="fork")
+
+
+def test_sleeping_parallel_env_steps_like_torchrl_parallel_env():
+    actions = torch.linspace(-1, 1, 2 * 2 * 4 * 6).reshape(6, 2, 2, 4)
+    trajectories = []
+    for env in (ParallelEnv(2, functools.partial(BatchedWalkerEnv, 2), mp_start_method="fork"), _sleeping_parallel()):
+        check_env_specs(env, seed=0)
+        env.set_seed(3)
+        td = env.reset()
+        observations = []
+        for action in actions:
+            td = env.step(td.set("action", action))
+            observations.append(td["next", "observation"])
+            td = env.step_mdp(td)
+        env.close()
+        trajectories.append(torch.stack(observations))
+    assert trajectories[0].shape == (6, 2, 2, 18)
+    torch.testing.assert_close(trajectories[0], trajectories[1], rtol=0, atol=0)
+
+
+def test_sleeping_parallel_env_parent_does_not_spin():
+    # TorchRL's ParallelEnv parent spin-waits (about 80% of a core here); ours sleeps.
+    env = _sleeping_parallel(num_robots=4)
     env.set_seed(0)
-    data = env.rollout(5)
+    env.rollout(2, break_when_any_done=False)
+    cpu, wall = time.process_time(), time.perf_counter()
+    env.rollout(30, break_when_any_done=False)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     env.close()
-    assert data.shape == torch.Size([2, 2, 5])
-    assert torch.isfinite(data["next", "observation"]).all()
+    assert cpu / wall < 0.5, f"parent used {cpu / wall:.0%} of a core while its workers stepped"
+
+
+def test_sleeping_parallel_env_reports_a_worker_that_dies_mid_rollout():
+    env = _sleeping_parallel(num_robots=16)
+    env.set_seed(0)
+    env.reset()
+    threading.Timer(0.3, env._workers[1].kill).start()  # a worker spends most of its time stepping
+    started = time.perf_counter()
+    with pytest.raises(RuntimeError, match="worker"):
+        env.rollout(1000, break_when_any_done=False)
+    assert time.perf_counter() - started < 5.0  # found within seconds, not after the rollout
+
+
+def test_sleeping_parallel_env_rejects_a_bad_poll_interval():
+    with pytest.raises(ValueError, match="-1"):
+        SleepingParallelEnv(2, BatchedWalkerEnv, poll_interval=-1)
 
 
 def test_sine_gait_walks_the_de_robot_forward():

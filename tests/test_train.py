@@ -1,7 +1,10 @@
 """train.py: configs compose, a run checkpoints, resumes bit-identically, and its policy loads."""
 
+import csv
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +65,33 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
     assert action.shape == (4,) and np.all(np.isfinite(action))
     assert (tmp_path / "straight" / "evaluation" / "designs.csv").is_file()
     assert (tmp_path / "straight" / "metrics.csv").read_text().count("\n") == 5  # header + 4 epochs
+
+
+def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
+    result = run_train(*TINY, "source=de", "workers=1", "epochs=1", "evaluation.grid=2", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    with (tmp_path / "evaluation" / "designs.csv").open() as file:
+        designs = {(float(row["length"]), float(row["density"])) for row in csv.DictReader(file)}
+    assert designs == {(0.15, 0.4), (0.15, 0.6), (0.2, 0.4), (0.2, 0.6)}  # not just DE's (0.175, 0.5)
+
+
+def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
+    run_dir = tmp_path / "killed"
+    process = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *TINY, "workers=1", "epochs=100000",
+                                f"hydra.run.dir={run_dir}"], cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    metrics = run_dir / "metrics.csv"
+    deadline = time.monotonic() + 120
+    while not (metrics.is_file() and metrics.read_text().count("\n") >= 3) and time.monotonic() < deadline:
+        assert process.poll() is None, process.communicate()[1]
+        time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 0, stderr
+    assert "stopped: saved epoch" in stdout
+    # The checkpoint holds every epoch that finished, not just the last periodic one.
+    finished = metrics.read_text().count("\n") - 1
+    assert load_checkpoint(run_dir / "checkpoint.pt")["epoch"] == finished >= 2
 
 
 def test_checkpoints_are_written_atomically(tmp_path, monkeypatch):

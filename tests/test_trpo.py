@@ -13,6 +13,7 @@ from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import (
     TRPOLoss,
     TRPOUpdater,
+    critic_fit,
     fit_critic,
     kl_hessian_vector_product_fn,
     make_critic_optimizer,
@@ -340,7 +341,7 @@ def test_fit_critic_fast_path_matches_autograd_and_optimizer_step(monkeypatch):
     class SteppedAdam(torch.optim.Adam):  # not a plain Adam: fit_critic calls .step()
         pass
 
-    monkeypatch.setattr(ng._PlainMLPRegression, "from_critic", classmethod(lambda cls, m: None))
+    monkeypatch.setattr(critic_fit._PlainMLPRegression, "from_critic", classmethod(lambda cls, m: None))
     plain_optimizer = SteppedAdam(plain.critic_parameters(), lr=1e-3)
     plain_loss = fit_critic(plain, batch, plain_optimizer, 3, 64, torch.Generator().manual_seed(0))
 

@@ -1,7 +1,7 @@
 """Evaluate a trained policy on a grid of robot designs.
 
-    python -m unipolicy_rl.evaluate runs/se/checkpoint.pt                 # 5 x 5 SE grid, 4 episodes each
-    python -m unipolicy_rl.evaluate CKPT --grid 7 --episodes 2 --out eval/
+    python -m unipolicy_rl.evaluate runs/se/checkpoint.pt                 # 5 x 5 SE grid, 1 episode each
+    python -m unipolicy_rl.evaluate CKPT --grid 7 --stochastic --episodes 4 --out eval/
 
 Writes designs.csv, heatmap_reward.png and heatmap_displacement.png into --out
 (default: a folder "evaluation" next to the checkpoint) and prints a table and a summary.
@@ -27,7 +27,9 @@ def make_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint file written by training")
     parser.add_argument("--grid", type=int, default=5, help="designs per axis (grid x grid designs); default 5")
-    parser.add_argument("--episodes", type=int, default=4, help="episodes per design; default 4")
+    parser.add_argument("--episodes", type=int, default=1,
+                        help="episodes per design; default 1, since a deterministic policy on one design "
+                             "repeats the same episode (use more with --stochastic)")
     parser.add_argument("--out", type=Path, help="output folder; default: evaluation/ next to the checkpoint")
     parser.add_argument("--seed", type=int, default=0, help="seed for the env and for stochastic actions")
     parser.add_argument("--length-range", type=float, nargs=2, default=(0.15, 0.20), metavar=("LOW", "HIGH"),

@@ -7,12 +7,14 @@ here, so a policy is always rebuilt exactly as it was trained.
 from __future__ import annotations
 
 import functools
+import signal
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from torchrl.envs import Compose, EnvBase, ParallelEnv, RewardSum, TransformedEnv, VecNorm
+from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv, VecNorm
 
 from unipolicy_rl.envs import BatchedWalkerEnv
+from unipolicy_rl.envs.parallel import SleepingParallelEnv
 from unipolicy_rl.networks import make_actor, make_critic
 
 NORMALIZED_OBSERVATION = "observation_norm"
@@ -32,6 +34,15 @@ def env_kwargs(cfg: DictConfig) -> dict:
     }
 
 
+def worker_env(num_robots: int, **kwargs) -> BatchedWalkerEnv:
+    """A worker's robots. Ctrl-C (and a scheduler's SIGTERM) reach every process of the job;
+    the worker ignores them so that the trainer alone decides when to stop, after the epoch
+    in progress. A worker still exits when the trainer goes: its command pipe closes."""
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, signal.SIG_IGN)
+    return BatchedWalkerEnv(num_robots, **kwargs)
+
+
 def make_env(cfg: DictConfig, normalizer: VecNorm | None = None) -> TransformedEnv:
     """``episodes_per_epoch`` robots per step, split over ``workers`` processes, with
     observation normalisation (TorchRL's VecNorm) and episode-reward tracking."""
@@ -42,7 +53,7 @@ def make_env(cfg: DictConfig, normalizer: VecNorm | None = None) -> TransformedE
     if workers == 1:
         base: EnvBase = BatchedWalkerEnv(episodes, **kwargs)
     else:
-        base = ParallelEnv(workers, functools.partial(BatchedWalkerEnv, episodes // workers, **kwargs))
+        base = SleepingParallelEnv(workers, functools.partial(worker_env, episodes // workers, **kwargs))
     # One set of statistics for all robots (reduce_batch_dims), not one per robot.
     normalizer = normalizer or VecNorm(
         in_keys=["observation"], out_keys=[NORMALIZED_OBSERVATION], new_api=True, reduce_batch_dims=True

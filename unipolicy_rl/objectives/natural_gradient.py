@@ -1,4 +1,4 @@
-"""The TRPO update: one natural-gradient policy step, then an Adam fit of the critic.
+"""One TRPO policy step by natural gradient.
 
 Written to be read top to bottom (in the spirit of stable-baselines3-contrib's TRPO), with each
 guard next to the failure it prevents:
@@ -38,21 +38,15 @@ from dataclasses import asdict, dataclass
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
-from torch import nn
-from torch.optim.adam import adam
 
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
 __all__ = [
     "TRPOStepResult",
-    "TRPOUpdater",
     "conjugate_gradient",
     "fisher_vector_product_fn",
-    "fit_critic",
     "flat_grad",
     "kl_hessian_vector_product_fn",
-    "make_critic_optimizer",
     "natural_gradient_step",
     "policy_fisher_vector_product_fn",
 ]
@@ -102,6 +96,36 @@ class TRPOStepResult:
 
 
 # ---------------------------------------------------------------------------------- building blocks
+def _grads(
+    outputs: torch.Tensor | Sequence[torch.Tensor],
+    inputs: Sequence[torch.Tensor],
+    grad_outputs: Sequence[torch.Tensor] | None = None,
+    **kwargs: bool | None,
+) -> tuple[torch.Tensor, ...]:
+    """``torch.autograd.grad`` with zeros for inputs the outputs do not depend on.
+
+    Every result is then a tensor shaped like its input, so the results can be flattened into
+    one vector with a fixed layout, or fed back as ``grad_outputs``, without special cases.
+    """
+    return torch.autograd.grad(
+        outputs, inputs, grad_outputs=grad_outputs, allow_unused=True, materialize_grads=True, **kwargs
+    )
+
+
+def _flatten(tensors: Sequence[torch.Tensor]) -> torch.Tensor:
+    """Concatenate ``tensors`` into one vector, in the parameter layout CG works in."""
+    return torch.cat([tensor.reshape(-1) for tensor in tensors])
+
+
+def _damped(product: Callable[[torch.Tensor], torch.Tensor], damping: float) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``v -> product(v) + damping * v``: the damping that keeps CG's matrix positive definite."""
+
+    def damped_product(vector: torch.Tensor) -> torch.Tensor:
+        return product(vector) + damping * vector
+
+    return damped_product
+
+
 def flat_grad(
     output: torch.Tensor,
     params: Sequence[torch.Tensor],
@@ -114,15 +138,7 @@ def flat_grad(
     Parameters the output does not depend on get zeros, so the vector layout always matches
     ``params``.
     """
-    grads = torch.autograd.grad(
-        output,
-        params,
-        retain_graph=retain_graph,
-        create_graph=create_graph,
-        allow_unused=True,
-        materialize_grads=True,
-    )
-    return torch.cat([grad.reshape(-1) for grad in grads])
+    return _flatten(_grads(output, params, retain_graph=retain_graph, create_graph=create_graph))
 
 
 def fisher_vector_product_fn(
@@ -151,41 +167,19 @@ def fisher_vector_product_fn(
     points = [output.detach().requires_grad_() for output in outputs]
     kl_gradient = torch.autograd.grad(mean_kl_of(points), points, create_graph=True)
     probes = [torch.zeros_like(output, requires_grad=True) for output in outputs]
-    transposed = torch.autograd.grad(
-        outputs, params, grad_outputs=probes, create_graph=True, allow_unused=True, materialize_grads=True
-    )
+    transposed = _grads(outputs, params, probes, create_graph=True)
     moving = [index for index, grad in enumerate(transposed) if grad.requires_grad]  # params that move outputs
     sizes = [param.numel() for param in params]
 
     def fisher_vector_product(vector: torch.Tensor) -> torch.Tensor:
         pieces = [chunk.view_as(param) for chunk, param in zip(vector.detach().split(sizes), params, strict=True)]
-        jacobian_vector = torch.autograd.grad(
-            [transposed[index] for index in moving],
-            probes,
-            grad_outputs=[pieces[index] for index in moving],
-            retain_graph=True,
-            allow_unused=True,
-            materialize_grads=True,
+        jacobian_vector = _grads(
+            [transposed[index] for index in moving], probes, [pieces[index] for index in moving], retain_graph=True
         )
-        curvature_vector = torch.autograd.grad(
-            kl_gradient,
-            points,
-            grad_outputs=jacobian_vector,
-            retain_graph=True,
-            allow_unused=True,
-            materialize_grads=True,
-        )
-        fisher_vector = torch.autograd.grad(
-            outputs,
-            params,
-            grad_outputs=curvature_vector,
-            retain_graph=True,
-            allow_unused=True,
-            materialize_grads=True,
-        )
-        return torch.cat([piece.reshape(-1) for piece in fisher_vector]) + damping * vector
+        curvature_vector = _grads(kl_gradient, points, jacobian_vector, retain_graph=True)
+        return _flatten(_grads(outputs, params, curvature_vector, retain_graph=True))
 
-    return fisher_vector_product
+    return _damped(fisher_vector_product, damping)
 
 
 def policy_fisher_vector_product_fn(
@@ -228,10 +222,9 @@ def kl_hessian_vector_product_fn(
     kl_grad = flat_grad(kl, params, create_graph=True)
 
     def hessian_vector_product(vector: torch.Tensor) -> torch.Tensor:
-        directional = kl_grad @ vector.detach()
-        return flat_grad(directional, params, retain_graph=True) + damping * vector
+        return flat_grad(kl_grad @ vector.detach(), params, retain_graph=True)
 
-    return hessian_vector_product
+    return _damped(hessian_vector_product, damping)
 
 
 def conjugate_gradient(
@@ -391,298 +384,3 @@ def natural_gradient_step(
         line_search_tries=max_backtracks,
         **diagnostics,
     )
-
-
-# ------------------------------------------------------------------------------------ critic fit
-def make_critic_optimizer(loss_module: TRPOLoss, lr: float = 1e-3) -> torch.optim.Adam:
-    """Adam over the critic parameters only (the policy moves by the natural gradient alone).
-
-    Uses the fused Adam kernel where available: with small networks and about a thousand
-    minibatch steps per update, per-tensor optimizer overhead is a large share of the time.
-    """
-    params = loss_module.critic_parameters()
-    try:
-        return torch.optim.Adam(params, lr=lr, fused=True)
-    except (RuntimeError, TypeError):
-        return torch.optim.Adam(params, lr=lr)
-
-
-def fit_critic(
-    loss_module: TRPOLoss,
-    batch: TensorDictBase,
-    optimizer: torch.optim.Optimizer,
-    epochs: int = 10,
-    minibatch_size: int = 128,
-    generator: torch.Generator | None = None,
-) -> float:
-    """Regress the critic on ``batch``'s value target by Adam over shuffled minibatches.
-
-    The value target must already be in ``batch`` (written by the value estimator before
-    this fit, so every minibatch regresses on the same fixed targets). Each epoch reshuffles
-    the whole batch once and walks it in contiguous slices. Returns the mean minibatch loss
-    (``critic_coeff * MSE``) over the fit.
-
-    This loop runs about a thousand tiny steps per update, so per-step overhead, not
-    arithmetic, sets its speed. Two fast paths, each checked against the plain path in
-    ``tests/test_trpo.py``, keep it low:
-
-    * a critic that is a plain MLP (``nn.Sequential`` of ``nn.Linear`` and tanh/ReLU, as
-      :func:`unipolicy_rl.networks.make_critic` builds) gets its MSE gradient by a
-      hand-written backward pass, on tensors, with no TensorDict or autograd bookkeeping;
-      any other critic goes through :meth:`TRPOLoss.critic_loss` and autograd;
-    * a plain ``torch.optim.Adam`` is applied through ``torch.optim.adam.adam`` on the
-      optimizer's own state, skipping ``Optimizer.step``'s per-call bookkeeping; any other
-      optimizer is stepped normally.
-    """
-    flat = batch.reshape(-1)
-    count = flat.numel()
-    critic = loss_module.critic_network
-    target = flat.get(loss_module.tensor_keys.value_target).detach()
-    coeff = float(loss_module.critic_coeff)
-    device = target.device
-    total = torch.zeros((), device=device)
-    steps = 0
-    with loss_module.critic_network_params.to_module(critic), torch.no_grad():
-        mlp = _PlainMLPRegression.from_critic(loss_module)
-        if mlp is not None:
-            params = mlp.params
-            inputs = flat.get(critic.in_keys[0])
-        else:
-            params = loss_module.critic_parameters()
-            inputs = flat.select(*critic.in_keys)
-        apply_gradients = _gradient_step_fn(optimizer, params)
-        for _ in range(epochs):
-            order = torch.randperm(count, generator=generator, device=generator.device if generator else device).to(
-                device
-            )
-            shuffled_inputs, shuffled_target = inputs[order], target[order]
-            for start in range(0, count, minibatch_size):
-                end = start + minibatch_size
-                if mlp is not None:
-                    loss, grads = mlp.loss_and_grads(shuffled_inputs[start:end], shuffled_target[start:end], coeff)
-                else:
-                    minibatch = shuffled_inputs[start:end]
-                    minibatch.set(loss_module.tensor_keys.value_target, shuffled_target[start:end])
-                    with torch.enable_grad():
-                        loss = loss_module.critic_loss(minibatch)
-                        grads = list(torch.autograd.grad(loss, params))
-                apply_gradients(grads)
-                total += loss.detach()
-                steps += 1
-    return float(total / max(steps, 1))
-
-
-class _PlainMLPRegression:
-    """MSE loss and its gradient for a ``Linear -> act -> ... -> Linear`` critic, by hand.
-
-    Autograd records and replays about twenty small nodes per minibatch; for a critic of this
-    one known shape the backward pass is a few matrix products, written out below.
-    """
-
-    _ACTIVATIONS = (nn.Tanh, nn.ReLU)
-
-    def __init__(self, linears: list[nn.Linear], activations: list[nn.Module]) -> None:
-        self.linears = linears
-        self.tanh = [isinstance(activation, nn.Tanh) for activation in activations]  # else ReLU
-        self.params = [t for layer in linears for t in (layer.weight, layer.bias)]
-
-    @classmethod
-    def from_critic(cls, loss_module: TRPOLoss) -> _PlainMLPRegression | None:
-        """The fast path for ``loss_module``'s critic, or ``None`` if it is not a plain MLP."""
-        critic = loss_module.critic_network
-        if not (
-            isinstance(critic, TensorDictModule)
-            and len(critic.in_keys) == 1
-            and list(critic.out_keys) == [loss_module.tensor_keys.value]
-            and isinstance(critic.module, nn.Sequential)
-        ):
-            return None
-        layers = list(critic.module)
-        linears, activations = layers[0::2], layers[1::2]
-        if (
-            len(layers) % 2 == 0
-            or not all(type(layer) is nn.Linear and layer.bias is not None for layer in linears)
-            or not all(type(act) in cls._ACTIVATIONS for act in activations)
-        ):
-            return None
-        mlp = cls(linears, activations)
-        critic_params = loss_module.critic_parameters()
-        if {id(t) for t in mlp.params} != {id(t) for t in critic_params} or len(critic_params) != len(mlp.params):
-            return None
-        return mlp
-
-    def loss_and_grads(
-        self, inputs: torch.Tensor, target: torch.Tensor, coeff: float
-    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """``coeff * mean((mlp(inputs) - target)^2)`` and its gradient, in ``self.params`` order.
-
-        Call under ``torch.no_grad()``: nothing here is recorded.
-        """
-        layer_inputs = [inputs]
-        hidden = inputs
-        for linear, is_tanh in zip(self.linears[:-1], self.tanh, strict=True):
-            hidden = torch.addmm(linear.bias, hidden, linear.weight.t())
-            hidden = hidden.tanh_() if is_tanh else hidden.relu_()
-            layer_inputs.append(hidden)
-        output_layer = self.linears[-1]
-        error = torch.addmm(output_layer.bias, hidden, output_layer.weight.t())
-        error = error.sub_(target.view_as(error))
-        scale = coeff / error.numel()
-        flat_error = error.view(-1)
-        loss = torch.dot(flat_error, flat_error).mul_(scale)
-        delta = error.mul_(2.0 * scale)  # d loss / d output
-        grads: list[torch.Tensor] = [delta] * len(self.params)
-        for index in range(len(self.linears) - 1, -1, -1):
-            layer_input = layer_inputs[index]
-            grads[2 * index] = delta.t() @ layer_input
-            grads[2 * index + 1] = delta.sum(0)
-            if index > 0:  # back through this linear map, then the activation that fed it
-                delta = delta @ self.linears[index].weight
-                if self.tanh[index - 1]:  # tanh' = 1 - tanh^2
-                    delta = torch.addcmul(delta, delta * layer_input, layer_input, value=-1.0)
-                else:
-                    delta = delta.mul_(layer_input > 0)
-        return loss, grads
-
-
-def _gradient_step_fn(
-    optimizer: torch.optim.Optimizer, params: list[torch.Tensor]
-) -> Callable[[list[torch.Tensor]], None]:
-    """``grads -> None`` applying one optimizer step with ``grads`` for ``params``.
-
-    For a plain ``torch.optim.Adam`` over exactly ``params`` this calls the public functional
-    kernel ``torch.optim.adam.adam`` on the optimizer's own state (so checkpoints and
-    learning-rate schedules keep working); the first step of a fresh optimizer goes through
-    ``optimizer.step()`` so that Adam creates its state itself.
-    """
-
-    def optimizer_step(grads: list[torch.Tensor]) -> None:
-        for param, grad in zip(params, grads, strict=True):
-            param.grad = grad
-        optimizer.step()
-        for param in params:
-            param.grad = None
-
-    group = optimizer.param_groups[0] if len(optimizer.param_groups) == 1 else None
-    if (
-        type(optimizer) is not torch.optim.Adam
-        or group is None
-        or len(group["params"]) != len(params)
-        or {id(t) for t in group["params"]} != {id(t) for t in params}
-        or any(group[flag] for flag in ("amsgrad", "capturable", "differentiable", "maximize"))
-        or group.get("decoupled_weight_decay", False)
-        or torch.is_tensor(group["lr"])
-    ):
-        return optimizer_step
-
-    state_lists: tuple[list[torch.Tensor], ...] | None = None
-
-    def functional_adam_step(grads: list[torch.Tensor]) -> None:
-        nonlocal state_lists
-        if state_lists is None:
-            if any(param not in optimizer.state for param in params):
-                optimizer_step(grads)
-                return
-            states = [optimizer.state[param] for param in params]
-            state_lists = tuple([state[name] for state in states] for name in ("exp_avg", "exp_avg_sq", "step"))
-        exp_avgs, exp_avg_sqs, state_steps = state_lists
-        adam(
-            params,
-            grads,
-            exp_avgs,
-            exp_avg_sqs,
-            [],
-            state_steps,
-            foreach=group["foreach"],
-            fused=group["fused"],
-            amsgrad=False,
-            beta1=group["betas"][0],
-            beta2=group["betas"][1],
-            lr=group["lr"],
-            weight_decay=group["weight_decay"],
-            eps=group["eps"],
-            maximize=False,
-        )
-
-    return functional_adam_step
-
-
-# ------------------------------------------------------------------------------------ full update
-class TRPOUpdater:
-    """One full TRPO update per call: advantage, natural-gradient policy step, critic fit.
-
-    Keeps the critic's Adam state across updates. ``update(batch)`` takes a collected batch
-    shaped ``[*envs, time]`` (time last, as TorchRL's GAE expects) and returns flat float
-    metrics named ``train/...``; the last :class:`TRPOStepResult` (with its skip reason) is
-    kept in ``last_step``.
-
-    Defaults follow the TRPO papers / stable-baselines3-contrib: ``max_kl=0.01``,
-    ``damping=0.1``, 10 CG iterations, backtracking by 0.8 up to 10 tries, critic Adam
-    ``lr=1e-3`` for 10 epochs of minibatches of 128.
-    """
-
-    def __init__(
-        self,
-        loss_module: TRPOLoss,
-        *,
-        max_kl: float = 0.01,
-        damping: float = 0.1,
-        cg_iters: int = 10,
-        cg_residual_tol: float = 1e-10,
-        backtrack_factor: float = 0.8,
-        max_backtracks: int = 10,
-        critic_lr: float = 1e-3,
-        critic_epochs: int = 10,
-        critic_minibatch_size: int = 128,
-        generator: torch.Generator | None = None,
-    ) -> None:
-        self.loss_module = loss_module
-        self.step_kwargs = {
-            "max_kl": max_kl,
-            "damping": damping,
-            "cg_iters": cg_iters,
-            "cg_residual_tol": cg_residual_tol,
-            "backtrack_factor": backtrack_factor,
-            "max_backtracks": max_backtracks,
-        }
-        self.critic_optimizer = make_critic_optimizer(loss_module, critic_lr)
-        self.critic_epochs = critic_epochs
-        self.critic_minibatch_size = critic_minibatch_size
-        self.generator = generator
-        self.last_step: TRPOStepResult | None = None
-
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """Update policy and critic on ``batch`` (advantage keys are written into it)."""
-        loss = self.loss_module
-        loss.compute_advantage(batch)
-        flat = batch.reshape(-1)
-        advantage = loss.advantage(flat)
-        step = natural_gradient_step(loss, flat, advantage=advantage, **self.step_kwargs)
-        self.last_step = step
-        metrics = step.as_metrics("train/")
-        metrics["train/explained_variance"] = _explained_variance(
-            flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
-        )
-        metrics["train/loss_critic"] = fit_critic(
-            loss,
-            flat,
-            self.critic_optimizer,
-            self.critic_epochs,
-            self.critic_minibatch_size,
-            self.generator,
-        )
-        return metrics
-
-
-def _explained_variance(prediction: torch.Tensor, target: torch.Tensor) -> float:
-    """``1 - Var(target - prediction) / Var(target)`` of the critic before its fit.
-
-    0.0 where it is undefined (fewer than two samples, or a constant target), so the metrics
-    stay finite for loggers and NaN checks.
-    """
-    target = target.reshape(-1)
-    variance = target.var(correction=0)
-    if target.numel() < 2 or variance == 0:
-        return 0.0
-    residual = target - prediction.reshape(-1)
-    return float(1.0 - residual.var(correction=0) / variance)

@@ -8,7 +8,8 @@ tensordict keys through ``set_keys``, a default GAE value estimator built by
 
 TRPO is not trained by back-propagating ``loss_objective`` with a first-order optimiser: the
 policy moves by one natural-gradient step per batch (see
-:mod:`unipolicy_rl.objectives.natural_gradient`), which uses the building blocks exposed here
+:mod:`unipolicy_rl.objectives.natural_gradient`; :mod:`unipolicy_rl.objectives.updater` adds the
+critic fit), which uses the building blocks exposed here
 (:meth:`TRPOLoss.advantage`, :meth:`TRPOLoss.policy_distribution_params`,
 :meth:`TRPOLoss.surrogate_advantage`, :meth:`TRPOLoss.mean_kl`). ``forward`` reports the same
 quantities as a TensorDict so the loss can be logged, tested and composed like any TorchRL loss.

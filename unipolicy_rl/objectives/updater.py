@@ -1,0 +1,92 @@
+"""The full TRPO update: advantage, one natural-gradient policy step, then the critic fit."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from unipolicy_rl.objectives.critic_fit import fit_critic, make_critic_optimizer
+from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, natural_gradient_step
+from unipolicy_rl.objectives.trpo import TRPOLoss
+
+__all__ = ["TRPOUpdater"]
+
+
+class TRPOUpdater:
+    """One full TRPO update per call: advantage, natural-gradient policy step, critic fit.
+
+    Keeps the critic's Adam state across updates. ``update(batch)`` takes a collected batch
+    shaped ``[*envs, time]`` (time last, as TorchRL's GAE expects) and returns flat float
+    metrics named ``train/...``; the last :class:`TRPOStepResult` (with its skip reason) is
+    kept in ``last_step``.
+
+    Defaults follow the TRPO papers / stable-baselines3-contrib: ``max_kl=0.01``,
+    ``damping=0.1``, 10 CG iterations, backtracking by 0.8 up to 10 tries, critic Adam
+    ``lr=1e-3`` for 10 epochs of minibatches of 128.
+    """
+
+    def __init__(
+        self,
+        loss_module: TRPOLoss,
+        *,
+        max_kl: float = 0.01,
+        damping: float = 0.1,
+        cg_iters: int = 10,
+        cg_residual_tol: float = 1e-10,
+        backtrack_factor: float = 0.8,
+        max_backtracks: int = 10,
+        critic_lr: float = 1e-3,
+        critic_epochs: int = 10,
+        critic_minibatch_size: int = 128,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        self.loss_module = loss_module
+        self.step_kwargs = {
+            "max_kl": max_kl,
+            "damping": damping,
+            "cg_iters": cg_iters,
+            "cg_residual_tol": cg_residual_tol,
+            "backtrack_factor": backtrack_factor,
+            "max_backtracks": max_backtracks,
+        }
+        self.critic_optimizer = make_critic_optimizer(loss_module, critic_lr)
+        self.critic_epochs = critic_epochs
+        self.critic_minibatch_size = critic_minibatch_size
+        self.generator = generator
+        self.last_step: TRPOStepResult | None = None
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """Update policy and critic on ``batch`` (advantage keys are written into it)."""
+        loss = self.loss_module
+        loss.compute_advantage(batch)
+        flat = batch.reshape(-1)
+        advantage = loss.advantage(flat)
+        step = natural_gradient_step(loss, flat, advantage=advantage, **self.step_kwargs)
+        self.last_step = step
+        metrics = step.as_metrics("train/")
+        metrics["train/explained_variance"] = _explained_variance(
+            flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
+        )
+        metrics["train/loss_critic"] = fit_critic(
+            loss,
+            flat,
+            self.critic_optimizer,
+            self.critic_epochs,
+            self.critic_minibatch_size,
+            self.generator,
+        )
+        return metrics
+
+
+def _explained_variance(prediction: torch.Tensor, target: torch.Tensor) -> float:
+    """``1 - Var(target - prediction) / Var(target)`` of the critic before its fit.
+
+    0.0 where it is undefined (fewer than two samples, or a constant target), so the metrics
+    stay finite for loggers and NaN checks.
+    """
+    target = target.reshape(-1)
+    variance = target.var(correction=0)
+    if target.numel() < 2 or variance == 0:
+        return 0.0
+    residual = target - prediction.reshape(-1)
+    return float(1.0 - residual.var(correction=0) / variance)
