@@ -233,6 +233,19 @@ def test_sine_gait_walks_the_de_robot_forward():
     assert not result["physics_fault"]
 
 
+def test_batched_env_partial_step_advances_only_the_masked_robots():
+    env = BatchedWalkerEnv(2, design=DesignDistribution.fixed(0.175, 0.5))
+    env.set_seed(0)
+    td = env.reset()
+    td.set("action", torch.ones(2, 4)).set("_step", torch.tensor([True, False]))
+    out = env.step(td)["next"]
+    env.close()
+    assert not torch.equal(out["observation"][0], td["observation"][0])
+    assert torch.equal(out["observation"][1], td["observation"][1])
+    assert out["reward"][1].item() == 0.0 and out["reward"][0].item() != 0.0
+    assert env._steps.tolist() == [1, 0]
+
+
 def test_batched_env_truncates_a_faulted_robot_only():
     env = BatchedWalkerEnv(2, design=DesignDistribution.fixed(0.175, 0.5))
     env.set_seed(0)

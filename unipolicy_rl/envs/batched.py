@@ -121,20 +121,26 @@ class BatchedWalkerEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         # Vectorised over the batch: target mapping and fault checks cost once per call,
-        # leaving the per-robot loop to PyBullet itself.
+        # leaving the per-robot loop to PyBullet itself. TorchRL's partial steps ("_step"
+        # mask) advance only the masked robots; the others keep their state, step count and
+        # flags, and get zero reward.
+        n = self.batch_size[0]
+        stepping = tensordict.get("_step", None)
+        stepping = np.ones(n, dtype=bool) if stepping is None else stepping.reshape(n).cpu().numpy()
         targets = joint_targets(tensordict.get("action").detach().cpu().numpy(), self._action_range)
-        for i, simulation in enumerate(self.simulations):
-            simulation.advance(targets[i])
-            self._raw[i] = simulation.read()
+        for i in np.flatnonzero(stepping):
+            self.simulations[i].advance(targets[i])
+            self._raw[i] = self.simulations[i].read()
         healthy = healthy_rows(self._raw)
-        self._faults = ~healthy
-        for i, simulation in enumerate(self.simulations):
+        self._faults = self._faults | (stepping & ~healthy)
+        for i in np.flatnonzero(stepping):
+            simulation = self.simulations[i]
             if healthy[i]:
                 simulation.last_observation = self._raw[i].copy()
             else:  # keep the last good observation so no NaN leaves the env
                 self._raw[i] = simulation.last_observation
-        self._steps += 1
-        reward = walking_reward(self._raw, self.reward_weights)
+        self._steps += stepping
+        reward = np.where(stepping, walking_reward(self._raw, self.reward_weights), 0.0)
         done = self._faults | (self._steps >= self.episode_length)
         return self._output(
             reward=torch.as_tensor(reward, dtype=torch.float32, device=self.device).unsqueeze(-1),
