@@ -1,9 +1,11 @@
-"""Walking environments: gymnasium's ``WalkerEnv`` and the batched TorchRL ``BatchedWalkerEnv``."""
+"""Walking environments: gymnasium's ``WalkerEnv``, the batched TorchRL ``BatchedWalkerEnv``, and
+``SleepingParallelEnv`` to spread batches over cores."""
 
 import gymnasium
 
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
 from unipolicy_rl.envs.design import Design, DesignDistribution
+from unipolicy_rl.envs.parallel import SleepingParallelEnv
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
 from unipolicy_rl.envs.walker import WalkerEnv
@@ -20,6 +22,7 @@ __all__ = [
     "PhysicsSettings",
     "RewardWeights",
     "RobotSettings",
+    "SleepingParallelEnv",
     "WalkerEnv",
     "WalkerSimulation",
     "walking_reward",
