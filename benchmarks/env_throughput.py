@@ -5,8 +5,9 @@
 Every variant runs the DE robot, 16 physics steps per action, uniform random actions,
 100-action episodes on the same world (plane, friction, motors). The raw loop is the
 physics alone: motor command, 16 ``stepSimulation`` calls, a state restore per episode.
-Prints actions/s (median of the repeats) and each ratio to the raw loop, then how two
-worker processes compare with one process (TorchRL's stock ``ParallelEnv``, which
+Prints actions/s (median of the repeats), each ratio to the raw loop and the share of a
+core this process used (for a ParallelEnv: its parent), then how two worker processes
+compare with one process (TorchRL's stock ``ParallelEnv``, which
 spin-waits, and our ``SleepingParallelEnv``); the last line is
 ``env_throughput_ratio: <batched N=32 / raw>``.
 """
@@ -36,7 +37,25 @@ from unipolicy_rl.envs.parallel import SleepingParallelEnv
 DE = DesignDistribution.fixed(0.175, 0.5)
 
 
-def raw_pybullet(actions: int, episode_length: int = 100) -> float:
+class Stopwatch:
+    """Wall time and this process's CPU time over a block. Their ratio is the share of a
+    core the process used: about 1 for one process, and for a ``ParallelEnv`` parent the
+    cost of its waiting (a spinning parent shows most of a core)."""
+
+    def __enter__(self) -> Stopwatch:
+        self.wall, self.cpu = -time.perf_counter(), -time.process_time()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.wall += time.perf_counter()
+        self.cpu += time.process_time()
+
+    def result(self, actions: int) -> tuple[float, float]:
+        """(actions/s, share of a core used by this process)."""
+        return actions / self.wall, self.cpu / self.wall
+
+
+def raw_pybullet(actions: int, episode_length: int = 100) -> tuple[float, float]:
     """The physics limit: motor command plus 16 stepSimulation calls per action, nothing else.
 
     The world (plane, robot, friction) is built by the env's own simulation class, untimed,
@@ -53,44 +72,41 @@ def raw_pybullet(actions: int, episode_length: int = 100) -> float:
     targets = np.random.default_rng(0).uniform(-physics.action_range, physics.action_range, (actions, n)).tolist()
     forces, position_gains, velocity_gains = ([value] * n for value in
                                               (physics.max_torque, physics.position_gain, physics.velocity_gain))
-    start = time.perf_counter()
-    for step, target in enumerate(targets):
-        if step % episode_length == 0:
-            pybullet.restoreState(standing, physicsClientId=client)
-        pybullet.setJointMotorControlArray(
-            body.body_id, joints, pybullet.POSITION_CONTROL, targetPositions=target, forces=forces,
-            positionGains=position_gains, velocityGains=velocity_gains, physicsClientId=client,
-        )
-        for _ in range(physics.substeps):
-            pybullet.stepSimulation(physicsClientId=client)
-    elapsed = time.perf_counter() - start
+    with Stopwatch() as stopwatch:
+        for step, target in enumerate(targets):
+            if step % episode_length == 0:
+                pybullet.restoreState(standing, physicsClientId=client)
+            pybullet.setJointMotorControlArray(
+                body.body_id, joints, pybullet.POSITION_CONTROL, targetPositions=target, forces=forces,
+                positionGains=position_gains, velocityGains=velocity_gains, physicsClientId=client,
+            )
+            for _ in range(physics.substeps):
+                pybullet.stepSimulation(physicsClientId=client)
     simulation.close()
-    return actions / elapsed
+    return stopwatch.result(actions)
 
 
-def gymnasium_env(actions: int) -> float:
+def gymnasium_env(actions: int) -> tuple[float, float]:
     env = WalkerEnv(DE)
     env.reset(seed=0)
     samples = np.random.default_rng(0).uniform(-1, 1, (actions, 4))
-    start = time.perf_counter()
-    for action in samples:
-        if env.step(action)[3]:
-            env.reset()
-    elapsed = time.perf_counter() - start
+    with Stopwatch() as stopwatch:
+        for action in samples:
+            if env.step(action)[3]:
+                env.reset()
     env.close()
-    return actions / elapsed
+    return stopwatch.result(actions)
 
 
-def torchrl_env(make_env, actions: int) -> float:
+def torchrl_env(make_env, actions: int) -> tuple[float, float]:
     env = make_env()
     env.set_seed(0)
     steps = max(1, actions // env.batch_size.numel())
     env.rollout(2, break_when_any_done=False)  # warm-up: worker start, first resets
-    start = time.perf_counter()
-    env.rollout(steps, break_when_any_done=False)
-    elapsed = time.perf_counter() - start
+    with Stopwatch() as stopwatch:
+        env.rollout(steps, break_when_any_done=False)
     env.close()
-    return steps * env.batch_size.numel() / elapsed
+    return stopwatch.result(steps * env.batch_size.numel())
 
 
 def main() -> None:
@@ -115,15 +131,16 @@ def main() -> None:
             for cls, n in ((ParallelEnv, 16), (SleepingParallelEnv, 16), (SleepingParallelEnv, 32))
         },
     }
-    rates = {name: [] for name in variants}
+    results = {name: [] for name in variants}
     for _ in range(args.repeats):  # interleave repeats so drift in machine load hits every variant
         for name, run in variants.items():
-            rates[name].append(run(args.actions))
-    medians = {name: statistics.median(values) for name, values in rates.items()}
+            results[name].append(run(args.actions))
+    medians = {name: statistics.median(rate for rate, _ in values) for name, values in results.items()}
+    cpu_shares = {name: statistics.median(share for _, share in values) for name, values in results.items()}
     raw = medians["raw PyBullet loop"]
-    print(f"{'variant':40s} {'actions/s':>10s} {'x raw':>7s}")
+    print(f"{'variant':40s} {'actions/s':>10s} {'x raw':>7s} {'CPU of this process':>20s}")
     for name, rate in medians.items():
-        print(f"{name:40s} {rate:10.0f} {rate / raw:7.3f}")
+        print(f"{name:40s} {rate:10.0f} {rate / raw:7.3f} {cpu_shares[name]:20.2f}")
     single = medians["BatchedWalkerEnv N=32"]
     for name in medians:
         if "2 workers" in name:
