@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import signal
 import time
-import warnings
 from pathlib import Path
 
 import hydra
@@ -27,16 +26,35 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 
 from unipolicy_rl.checkpoint import load_checkpoint, save_checkpoint
-from unipolicy_rl.envs import DesignDistribution
+from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution
 from unipolicy_rl.evaluation import evaluate_on_designs, plot_heatmaps, summarise, write_csv
 from unipolicy_rl.evaluation.plots import plot_training_curve
-from unipolicy_rl.factories import make_actor_critic, make_env
+from unipolicy_rl.factories import (
+    env_kwargs,
+    make_actor_critic,
+    make_collecting_policy,
+    make_collector,
+    make_observation_norm,
+)
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
+from unipolicy_rl.observation_statistics import ObservationStatistics
 
 
 def epoch_seed(seed: int, epoch: int) -> int:
-    """Each epoch draws its designs from its own seed, so a resumed run sees the same robots."""
+    """The seed a run restarts its designs and action noise from at ``epoch``."""
     return int(np.random.SeedSequence([seed, epoch]).generate_state(1)[0])
+
+
+def restart_randomness(collector, seed: int, epoch: int) -> None:
+    """Reseeds every env's designs and every action sampler and resets every robot, from
+    ``epoch_seed``: each epoch is then a function of the weights and statistics that start
+    it, so a run resumed from any checkpoint continues exactly as the uninterrupted run.
+    (The multi-process collector seeds each worker's torch and resets its robots itself.)
+    """
+    collector.set_seed(epoch_seed(seed, epoch))
+    if isinstance(collector, Collector):
+        torch.manual_seed(epoch_seed(seed, epoch))
+        collector.reset()
 
 
 def episode_metrics(batch, control_period: float, episode_length: int) -> dict[str, float]:
@@ -62,8 +80,7 @@ def append_metrics_row(path: Path, epoch: int, metrics: dict[str, float]) -> Non
         writer.writerow(row)
 
 
-def training_state(epoch, actor, critic, normalizer, updater, cfg, observation_dim, action_dim) -> dict:
-    loc, scale = normalizer._get_loc_scale()
+def training_state(epoch, actor, critic, statistics, updater, cfg, observation_dim, action_dim) -> dict:
     return {
         "epoch": epoch,
         "config": OmegaConf.to_container(cfg, resolve=True),
@@ -71,12 +88,11 @@ def training_state(epoch, actor, critic, normalizer, updater, cfg, observation_d
         "action_dim": action_dim,
         "actor": actor.state_dict(),
         "critic": critic.state_dict(),
-        "normalizer": normalizer.state_dict(),
-        "observation_loc": loc["observation"].clone(),
-        "observation_scale": scale["observation"].clone(),
+        "observation_statistics": statistics.state_dict(),
+        "observation_loc": statistics.loc,
+        "observation_scale": statistics.scale,
         "critic_optimizer": updater.critic_optimizer.state_dict(),
         "critic_generator": updater.generator.get_state(),
-        "torch_rng": torch.get_rng_state(),
     }
 
 
@@ -125,17 +141,16 @@ class StopAtEpochEnd:
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(1)  # PyBullet robots and small networks: threads only contend on 2 cores
-    # VecNorm over a batched env: we use one set of statistics for all robots (see factories).
-    warnings.filterwarnings("ignore", message="Support of VecNormV2 for containers with non-empty batch-size")
-    torch.manual_seed(cfg.seed)
+    torch.manual_seed(cfg.seed)  # network initialisation
     run_dir = Path(HydraConfig.get().runtime.output_dir)
 
-    env = make_env(cfg)
-    env.set_seed(cfg.seed)  # the collector's first reset feeds the normaliser: make it reproducible
-    normalizer = env.transform[0]
-    observation_dim = env.observation_spec["observation"].shape[-1]
-    action_dim = env.action_spec.shape[-1]
+    probe = BatchedWalkerEnv(1, **env_kwargs(cfg))
+    observation_dim = probe.observation_spec["observation"].shape[-1]
+    action_dim = probe.action_spec.shape[-1]
+    probe.close()
     actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
+    normalizer = make_observation_norm(observation_dim)
+    statistics = ObservationStatistics(observation_dim)
     algo = cfg.algo
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
@@ -146,9 +161,6 @@ def main(cfg: DictConfig) -> dict:
         critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
     )
     episode_length = cfg.robot.episode_length
-    frames_per_batch = cfg.episodes_per_epoch * episode_length
-    collector = Collector(env, actor, frames_per_batch=frames_per_batch, total_frames=frames_per_batch * cfg.epochs,
-                          reset_at_each_iter=True, auto_register_policy_transforms=False)
     control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
 
     start_epoch = 0
@@ -156,32 +168,39 @@ def main(cfg: DictConfig) -> dict:
         state = load_checkpoint(cfg.resume)
         actor.load_state_dict(state["actor"])
         critic.load_state_dict(state["critic"])
-        normalizer.load_state_dict(state["normalizer"])
+        statistics.load_state_dict(state["observation_statistics"])
         updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
         updater.generator.set_state(state["critic_generator"])
-        torch.set_rng_state(state["torch_rng"])
         start_epoch = state["epoch"]
         print(f"resumed from {cfg.resume} at epoch {start_epoch}")
+    statistics.copy_to(normalizer)
+    collector = make_collector(cfg, make_collecting_policy(normalizer, actor), cfg.epochs - start_epoch)
 
     logger = instantiate(cfg.logger)
     checkpoint_path = run_dir / "checkpoint.pt"
     metrics_csv = run_dir / "metrics.csv"
 
     def checkpoint(epoch: int) -> Path:
-        state = training_state(epoch, actor, critic, normalizer, updater, cfg, observation_dim, action_dim)
+        state = training_state(epoch, actor, critic, statistics, updater, cfg, observation_dim, action_dim)
         return save_checkpoint(checkpoint_path, state)
 
     epoch = start_epoch
+    batches = iter(collector)
     progress = tqdm.tqdm(range(start_epoch, cfg.epochs), initial=start_epoch, total=cfg.epochs,
                          disable=not cfg.progress_bar, desc=f"{cfg.source.name}-TRPO")
     with StopAtEpochEnd() as stop:
         for epoch in progress:
-            env.set_seed(epoch_seed(cfg.seed, epoch))
             started = time.perf_counter()
-            batch = collector.rollout()
+            restart_randomness(collector, cfg.seed, epoch)
+            batch = next(batches)
             collected = time.perf_counter()
+            normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
             metrics = episode_metrics(batch, control_period, episode_length)
             metrics.update(updater.update(batch))
+            # The next epoch's policy normalises with statistics that include this epoch.
+            statistics.update(batch["observation"])
+            statistics.copy_to(normalizer)
+            collector.update_policy_weights_()
             metrics["time/collect"] = collected - started
             metrics["time/update"] = time.perf_counter() - collected
             for name, value in metrics.items():

@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def raw_rates(actions: int, repeats: int) -> list[float]:
-    return [raw_pybullet(actions) for _ in range(repeats)]
+    """Raw PyBullet actions/s, ``repeats`` times."""
+    return [raw_pybullet(actions)[0] for _ in range(repeats)]
 
 
 def train(epochs: int, overrides: list[str], run_dir: Path) -> list[dict[str, float]]:

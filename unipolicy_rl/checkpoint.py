@@ -1,7 +1,7 @@
 """Checkpoints: written atomically, resumable, and loadable as a policy in one call.
 
 A checkpoint holds everything a run needs to continue bit-for-bit (weights, critic
-optimiser, observation statistics, RNG states, epoch) and its resolved config, so
+optimiser, observation statistics, the critic's minibatch RNG, epoch) and its resolved config, so
 ``load_policy(path)`` can rebuild the policy without any other file.
 """
 
@@ -15,11 +15,16 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModuleBase, TensorDictSequential
-from torchrl.envs.transforms import ObservationNorm
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from unipolicy_rl.factories import NORMALIZED_OBSERVATION, config_from_dict, env_kwargs, make_actor_critic
+from unipolicy_rl.factories import (
+    config_from_dict,
+    env_kwargs,
+    make_actor_critic,
+    make_collecting_policy,
+    make_observation_norm,
+)
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
@@ -75,9 +80,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     cfg = config_from_dict(state["config"])
     actor, _ = make_actor_critic(cfg, state["observation_dim"], state["action_dim"])
     actor.load_state_dict(state["actor"])
-    normalizer = ObservationNorm(
-        loc=state["observation_loc"], scale=state["observation_scale"], standard_normal=True,
-        in_keys=["observation"], out_keys=[NORMALIZED_OBSERVATION],
-    )
-    policy = TensorDictSequential(normalizer, actor).to(device).eval()
+    normalizer = make_observation_norm(state["observation_dim"])
+    normalizer.loc.copy_(state["observation_loc"])
+    normalizer.scale.copy_(state["observation_scale"])
+    policy = make_collecting_policy(normalizer, actor).to(device).eval()
     return LoadedPolicy(policy, env_kwargs(cfg), state["config"], state["epoch"])

@@ -9,12 +9,15 @@ from __future__ import annotations
 import functools
 import signal
 
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from torchrl.envs import Compose, EnvBase, RewardSum, TransformedEnv, VecNorm
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.envs.transforms import ObservationNorm
 
 from unipolicy_rl.envs import BatchedWalkerEnv
-from unipolicy_rl.envs.parallel import SleepingParallelEnv
 from unipolicy_rl.networks import make_actor, make_critic
 
 NORMALIZED_OBSERVATION = "observation_norm"
@@ -34,31 +37,52 @@ def env_kwargs(cfg: DictConfig) -> dict:
     }
 
 
-def worker_env(num_robots: int, **kwargs) -> BatchedWalkerEnv:
-    """A worker's robots. Ctrl-C (and a scheduler's SIGTERM) reach every process of the job;
-    the worker ignores them so that the trainer alone decides when to stop, after the epoch
-    in progress. A worker still exits when the trainer goes: its command pipe closes."""
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, signal.SIG_IGN)
-    return BatchedWalkerEnv(num_robots, **kwargs)
+def training_env(num_robots: int, ignore_signals: bool = False, **kwargs) -> TransformedEnv:
+    """One process's robots, with TorchRL's episode-reward tracking.
+
+    In a collector worker (``ignore_signals``) Ctrl-C and a scheduler's SIGTERM, which reach
+    every process of the job, are ignored: the trainer alone decides when to stop, after the
+    epoch in progress. A worker still exits when the trainer goes (its pipe closes).
+    """
+    if ignore_signals:
+        for number in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(number, signal.SIG_IGN)
+    return TransformedEnv(BatchedWalkerEnv(num_robots, **kwargs), RewardSum())
 
 
-def make_env(cfg: DictConfig, normalizer: VecNorm | None = None) -> TransformedEnv:
-    """``episodes_per_epoch`` robots per step, split over ``workers`` processes, with
-    observation normalisation (TorchRL's VecNorm) and episode-reward tracking."""
+def robots_per_worker(cfg: DictConfig) -> int:
     episodes, workers = cfg.episodes_per_epoch, cfg.workers
-    if workers < 1 or episodes % workers:
+    if not (isinstance(workers, int) and workers >= 1) or episodes % workers:
         raise ValueError(f"episodes_per_epoch ({episodes}) must be a positive multiple of workers ({workers})")
+    return episodes // workers
+
+
+def make_observation_norm(observation_dim: int) -> ObservationNorm:
+    """The policy's input normaliser (identity until statistics are copied in)."""
+    return ObservationNorm(loc=torch.zeros(observation_dim), scale=torch.ones(observation_dim),
+                           standard_normal=True, in_keys=["observation"], out_keys=[NORMALIZED_OBSERVATION])
+
+
+def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int) -> Collector | MultiSyncCollector:
+    """One epoch (``episodes_per_epoch`` robots x ``episode_length`` steps) per iteration.
+
+    ``workers`` processes each step their share of the robots *and* run the policy on them
+    (TorchRL's ``MultiSyncCollector``, weights shared through memory), so the trainer does no
+    per-step work; ``workers=1`` collects in this process. Episodes end together at the end
+    of an epoch and the collector's auto-reset starts the next epoch's robots right away.
+    """
+    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
     kwargs = env_kwargs(cfg)
-    if workers == 1:
-        base: EnvBase = BatchedWalkerEnv(episodes, **kwargs)
-    else:
-        base = SleepingParallelEnv(workers, functools.partial(worker_env, episodes // workers, **kwargs))
-    # One set of statistics for all robots (reduce_batch_dims), not one per robot.
-    normalizer = normalizer or VecNorm(
-        in_keys=["observation"], out_keys=[NORMALIZED_OBSERVATION], new_api=True, reduce_batch_dims=True
-    )
-    return TransformedEnv(base, Compose(normalizer, RewardSum()))
+    common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1)}
+    if cfg.workers == 1:
+        return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
+    make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
+    return MultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
+
+
+def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleBase) -> TensorDictSequential:
+    """Raw ``observation`` -> normalised -> action: the policy the workers run."""
+    return TensorDictSequential(normalizer, actor)
 
 
 def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):

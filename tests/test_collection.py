@@ -1,0 +1,70 @@
+"""Collection for training: observation statistics and the collector's worker processes."""
+
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from unipolicy_rl.factories import (
+    NORMALIZED_OBSERVATION,
+    make_actor_critic,
+    make_collecting_policy,
+    make_collector,
+    make_observation_norm,
+)
+from unipolicy_rl.observation_statistics import MIN_SCALE, ObservationStatistics
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def test_statistics_merged_over_batches_equal_those_of_all_the_data():
+    data = torch.randn(1000, 5, dtype=torch.float64) * torch.tensor([1.0, 2.0, 0.5, 10.0, 3.0]) + 4.0
+    statistics = ObservationStatistics(5)
+    for chunk in (data[:7], data[7:300], data[300:].reshape(35, 20, 5)):  # uneven, and batched shapes
+        statistics.update(chunk)
+    assert statistics.count == 1000
+    torch.testing.assert_close(statistics.mean, data.mean(0))
+    torch.testing.assert_close(statistics.scale, data.std(0, correction=0).float())
+
+
+def test_a_constant_coordinate_gets_the_floor_scale_not_zero():
+    statistics = ObservationStatistics(2)
+    assert torch.equal(statistics.scale, torch.ones(2))  # identity before any data
+    statistics.update(torch.tensor([[1.0, 3.0], [2.0, 3.0]]))
+    assert statistics.scale[1] == pytest.approx(MIN_SCALE)
+
+
+@pytest.mark.parametrize("bad", [torch.zeros(4, 3), torch.tensor([[float("nan"), 0.0]])])
+def test_bad_observations_are_refused(bad):
+    with pytest.raises(ValueError):
+        ObservationStatistics(2).update(bad)
+
+
+def tiny_config(workers: int):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("config", overrides=[f"workers={workers}", f"episodes_per_epoch={2 * workers}",
+                                            "robot.episode_length=5"])
+
+
+def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
+    """The collecting policy runs in the workers: after new statistics and a weight update,
+    the next batch must have been normalised with them, and hold one epoch of every robot."""
+    cfg = tiny_config(workers=2)
+    actor, _ = make_actor_critic(cfg, 18, 4)
+    normalizer = make_observation_norm(18)
+    collector = make_collector(cfg, make_collecting_policy(normalizer, actor), epochs=2)
+    try:
+        batches = iter(collector)
+        first = next(batches)
+        assert first.shape == (2, 2, 5)  # workers x robots each x steps
+        torch.testing.assert_close(first[NORMALIZED_OBSERVATION], first["observation"])  # identity so far
+        statistics = ObservationStatistics(18)
+        statistics.update(first["observation"])
+        statistics.copy_to(normalizer)
+        collector.update_policy_weights_()
+        second = next(batches)
+        expected = (second["observation"] - statistics.loc) / statistics.scale
+        torch.testing.assert_close(second[NORMALIZED_OBSERVATION], expected)
+    finally:
+        collector.shutdown()
