@@ -121,13 +121,18 @@ class WalkerSimulation:
     def reset(self, design: Design) -> np.ndarray:
         """Puts a robot of ``design`` standing at the origin, facing +x.
 
-        A new design rebuilds the body; the same design again (always, under DE) restores
-        the state saved right after the last build, which is several times cheaper.
+        A new design rebuilds the body. The same design a second time (always, under DE)
+        rebuilds it once more and saves that state; every later time restores it, which is
+        several times cheaper. Saving only on a repeat keeps the save off the SE path, where
+        designs never repeat.
         """
-        if self.body is not None and design == self.design:
+        if self.body is not None and design == self.design and self._built_state is not None:
             pybullet.restoreState(self._built_state, physicsClientId=self.client)
         else:
+            repeat = self.body is not None and design == self.design
             self._build(design)
+            if repeat:
+                self._built_state = pybullet.saveState(physicsClientId=self.client)
         self._drive(np.zeros(self.num_actions))
         base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
         self._origin = np.array(base_position[:2])
@@ -155,7 +160,7 @@ class WalkerSimulation:
         self.design = design
         self._observed = [self.body.link_index(name) for name in self.robot_settings.observed_links]
         self._all_links = [self.body.link_index(name) for name in self._link_names[1:]]
-        self._built_state = pybullet.saveState(physicsClientId=self.client)
+        self._built_state: int | None = None
 
     def close(self) -> None:
         if self.client is not None and pybullet.isConnected(self.client):
