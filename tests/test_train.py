@@ -77,7 +77,7 @@ def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
 
 def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
     run_dir = tmp_path / "killed"
-    process = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *TINY, "workers=1", "epochs=100000",
+    process = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *TINY, "epochs=100000",
                                 f"hydra.run.dir={run_dir}"], cwd=ROOT, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     metrics = run_dir / "metrics.csv"
