@@ -128,9 +128,15 @@ class BatchedWalkerEnv(EnvBase):
         stepping = tensordict.get("_step", None)
         stepping = np.ones(n, dtype=bool) if stepping is None else stepping.reshape(n).cpu().numpy()
         targets = joint_targets(tensordict.get("action").detach().cpu().numpy(), self._action_range)
-        for i in np.flatnonzero(stepping):
-            self.simulations[i].advance(targets[i])
-            self._raw[i] = self.simulations[i].read()
+        active = np.flatnonzero(stepping)
+        states = []
+        for i in active:  # read each robot right after its physics, while its world is in cache
+            simulation = self.simulations[i]
+            simulation.advance(targets[i])
+            states.append(simulation.world_state())
+        if states:
+            origins = np.array([self.simulations[i].origin for i in active])
+            self._raw[active] = self.simulations[0].to_start_frame(np.array(states), origins)
         healthy = healthy_rows(self._raw)
         self._faults = self._faults | (stepping & ~healthy)
         for i in np.flatnonzero(stepping):

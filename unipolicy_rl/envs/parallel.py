@@ -17,6 +17,9 @@ from torchrl.envs import ParallelEnv
 
 # Polling starts near the expected end of a step; a 0.1 ms poll then adds ~0.05 ms to it.
 DEFAULT_POLL_INTERVAL = 1e-4
+# Longer steps poll less often: every 1% of the typical wait, so the delay a poll adds stays
+# about 0.5% of a step while the parent wakes (and takes CPU from the workers) less.
+POLL_FRACTION_OF_WAIT = 0.01
 # Seconds between checks that the workers are alive and within the timeout.
 HEALTH_CHECK_INTERVAL = 1.0
 # Share of the last wait slept in one go before polling starts.
@@ -26,8 +29,8 @@ EXPECTED_WAIT_FRACTION = 0.8
 class SleepingParallelEnv(ParallelEnv):
     """A ``ParallelEnv`` for machines with no core to spare beyond its workers.
 
-    Takes ``poll_interval`` (seconds between checks of the workers' done flags) and
-    every argument of :class:`torchrl.envs.ParallelEnv`.
+    Takes ``poll_interval`` (the shortest time in seconds between checks of the workers'
+    done flags) and every argument of :class:`torchrl.envs.ParallelEnv`.
     """
 
     def __init__(self, *args, poll_interval: float = DEFAULT_POLL_INTERVAL, **kwargs):
@@ -48,8 +51,9 @@ class SleepingParallelEnv(ParallelEnv):
         # then poll, so the parent wakes a few times per step instead of hundreds.
         if self._typical_wait > 0:
             time.sleep(EXPECTED_WAIT_FRACTION * self._typical_wait)
+        poll_interval = max(self.poll_interval, POLL_FRACTION_OF_WAIT * self._typical_wait)
         while not all(flags[index] for _, index in workers):
-            time.sleep(self.poll_interval)
+            time.sleep(poll_interval)
             now = time.monotonic()
             if now < next_health_check:
                 continue

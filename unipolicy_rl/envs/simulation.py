@@ -111,6 +111,10 @@ class WalkerSimulation:
         self.observation_size = 6 * (1 + len(robot.observed_links)) if observation == "thesis" else (
             6 * len(self._link_names) + 2 * self.num_actions
         )
+        # Each observed body (the base, then links) contributes position xyz and velocity xyz.
+        self._positions_per_observation = 1 + (len(robot.observed_links) if observation == "thesis"
+                                               else len(self._link_names) - 1)
+        self._xy_columns = np.array([6 * k + axis for k in range(self._positions_per_observation) for axis in (0, 1)])
         self.client = pybullet.connect(pybullet.DIRECT)
         self.body: RobotBody | None = None
         self.design: Design | None = None
@@ -158,8 +162,18 @@ class WalkerSimulation:
             pybullet.changeDynamics(self.body.body_id, link_index, lateralFriction=self.physics.lateral_friction,
                                     physicsClientId=self.client)
         self.design = design
-        self._observed = [self.body.link_index(name) for name in self.robot_settings.observed_links]
-        self._all_links = [self.body.link_index(name) for name in self._link_names[1:]]
+        observed = self.robot_settings.observed_links if self.observation_kind == "thesis" else self._link_names[1:]
+        self._read_links = [self.body.link_index(name) for name in observed]
+        n = self.num_actions
+        self._motor_command = {
+            "bodyUniqueId": self.body.body_id,
+            "jointIndices": self.body.actuated_joint_indices,
+            "controlMode": pybullet.POSITION_CONTROL,
+            "forces": [self.physics.max_torque] * n,
+            "positionGains": [self.physics.position_gain] * n,
+            "velocityGains": [self.physics.velocity_gain] * n,
+            "physicsClientId": self.client,
+        }
         self._built_state: int | None = None
 
     def close(self) -> None:
@@ -188,28 +202,23 @@ class WalkerSimulation:
             pybullet.stepSimulation(physicsClientId=self.client)
 
     def _drive(self, targets: np.ndarray) -> None:
-        physics = self.physics
-        n = self.num_actions
-        pybullet.setJointMotorControlArray(
-            self.body.body_id,
-            self.body.actuated_joint_indices,
-            pybullet.POSITION_CONTROL,
-            targetPositions=targets.tolist(),
-            forces=[physics.max_torque] * n,
-            positionGains=[physics.position_gain] * n,
-            velocityGains=[physics.velocity_gain] * n,
-            physicsClientId=self.client,
-        )
+        pybullet.setJointMotorControlArray(targetPositions=targets.tolist(), **self._motor_command)
 
     # -- state ---------------------------------------------------------------------
     def read(self) -> np.ndarray:
         """The current observation, unchecked (see :func:`healthy_rows`)."""
+        return self.to_start_frame(np.asarray(self.world_state()), self.origin)
+
+    def world_state(self) -> list[float]:
+        """The observation's values with positions in the world frame, as PyBullet gives them.
+
+        A plain list, so a batch of robots becomes one array in one conversion.
+        """
         body, client = self.body.body_id, self.client
         position, _ = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
         velocity, _ = pybullet.getBaseVelocity(body, physicsClientId=client)
-        links = self._observed if self.observation_kind == "thesis" else self._all_links
         # Forward kinematics on read: otherwise link states lag the base by one physics step.
-        states = pybullet.getLinkStates(body, links, computeLinkVelocity=1, computeForwardKinematics=1,
+        states = pybullet.getLinkStates(body, self._read_links, computeLinkVelocity=1, computeForwardKinematics=1,
                                         physicsClientId=client)
         values = [*position, *velocity]
         for state in states:
@@ -217,11 +226,21 @@ class WalkerSimulation:
         if self.observation_kind == "full":
             joints = pybullet.getJointStates(body, self.body.actuated_joint_indices, physicsClientId=client)
             values += [joint[0] for joint in joints] + [joint[1] for joint in joints]
-        observation = np.asarray(values, dtype=np.float64)
-        # Positions are measured from where the base started, as the thesis' fixed global frame.
-        xyz = observation[: 6 * (1 + len(links))].reshape(-1, 6)
-        xyz[:, :2] -= self._origin
-        return observation
+        return values
+
+    def to_start_frame(self, observations: np.ndarray, origins: np.ndarray) -> np.ndarray:
+        """Shifts x, y of every position by where its robot started (in place; also returned).
+
+        Positions are measured from the start, as the thesis' fixed global frame. Works on one
+        observation with its ``origin`` (2,) or on a batch with ``origins`` (batch, 2).
+        """
+        observations[..., self._xy_columns] -= np.tile(origins, self._positions_per_observation)
+        return observations
+
+    @property
+    def origin(self) -> np.ndarray:
+        """Where the base started this episode (x, y, world frame)."""
+        return self._origin
 
     def base_position(self) -> np.ndarray:
         """Base link position relative to its start (x, y) and its height (z)."""
