@@ -58,6 +58,12 @@ def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
         batches = iter(collector)
         first = next(batches)
         assert first.shape == (2, 2, 5)  # workers x robots each x steps
+        # One episode per robot: truncated (not terminated) at the last step only, with the
+        # episode's whole reward summed there.
+        done, truncated = first["next", "done"].squeeze(-1), first["next", "truncated"].squeeze(-1)
+        assert done[..., -1].all() and not done[..., :-1].any() and torch.equal(done, truncated)
+        assert not first["next", "terminated"].any()
+        torch.testing.assert_close(first["next", "episode_reward"][..., -1, 0], first["next", "reward"].sum((-2, -1)))
         torch.testing.assert_close(first[NORMALIZED_OBSERVATION], first["observation"])  # identity so far
         statistics = ObservationStatistics(18)
         statistics.update(first["observation"])

@@ -104,6 +104,17 @@ def test_episode_truncates_after_episode_length_and_reports_metrics():
     env.close()
 
 
+@pytest.mark.parametrize(("episode_length", "first_done"), [(3, 3), (None, None)])
+def test_batched_env_time_limit_or_none(episode_length, first_done):
+    env = BatchedWalkerEnv(2, DesignDistribution.fixed(0.175, 0.5), episode_length=episode_length)
+    env.set_seed(0)
+    done = env.rollout(6, break_when_any_done=False)["next", "done"].squeeze(-1)  # [robots, time]
+    steps_done = [step + 1 for step in range(6) if done[:, step].all()]
+    assert (steps_done[0] if steps_done else None) == first_done
+    assert not done.any() if episode_length is None else done[:, 2].all()
+    env.close()
+
+
 def test_explicit_design_in_reset_options():
     env = WalkerEnv()
     _, info = env.reset(seed=0, options={"design": (0.16, 0.55)})

@@ -12,6 +12,7 @@ import signal
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import RewardSum, TransformedEnv
@@ -68,16 +69,32 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int) -
 
     ``workers`` processes each step their share of the robots *and* run the policy on them
     (TorchRL's ``MultiSyncCollector``, weights shared through memory), so the trainer does no
-    per-step work; ``workers=1`` collects in this process. Episodes end together at the end
-    of an epoch and the collector's auto-reset starts the next epoch's robots right away.
+    per-step work; ``workers=1`` collects in this process.
+
+    An epoch is one episode of every robot. The collector's post-processing marks its last
+    step truncated and the trainer resets every robot at the start of the next epoch, so
+    the envs themselves set no time limit: a limit would make the collector rebuild every
+    robot at the end of an epoch only for that reset to rebuild them again. A physics fault
+    still ends an episode early, and that robot restarts at once.
     """
     frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
-    kwargs = env_kwargs(cfg)
-    common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1)}
+    kwargs = {**env_kwargs(cfg), "episode_length": None}
+    common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
+              "postproc": truncate_last_step}
     if cfg.workers == 1:
         return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
     make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
     return MultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
+
+
+def truncate_last_step(batch: TensorDictBase) -> TensorDictBase:
+    """Ends every episode at the batch's last step (truncated, not terminated), as the time
+    limit would. (The collector's own ``set_truncated`` misses reused worker buffers.)"""
+    for key in ("truncated", "done"):
+        flags = batch.get(("next", key))
+        flags[..., -1, :] = True
+        batch.set(("next", key), flags)
+    return batch
 
 
 def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleBase) -> TensorDictSequential:

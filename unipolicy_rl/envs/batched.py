@@ -28,7 +28,9 @@ class BatchedWalkerEnv(EnvBase):
 
     Keys: ``observation`` (float32), ``design`` (l, rho of each robot's current build),
     ``physics_fault`` (the step blew up and was truncated), plus TorchRL's reward and
-    done/terminated/truncated. Partial resets (``_reset`` mask) rebuild only the masked
+    done/terminated/truncated. Episodes are truncated after ``episode_length`` steps, or
+    never with ``None`` (the caller ends them, e.g. a collector's ``set_truncated``), and
+    early on a physics fault. Partial resets (``_reset`` mask) rebuild only the masked
     robots; an explicit ``design`` in the reset tensordict overrides the distribution
     for those robots (used by evaluation). Same seed, same trajectories.
     """
@@ -44,17 +46,17 @@ class BatchedWalkerEnv(EnvBase):
         observation: str = "thesis",
         append_design: bool = False,
         reward_weights: RewardWeights | None = None,
-        episode_length: int = 100,
+        episode_length: int | None = 100,
         device: str | torch.device = "cpu",
     ):
         if not (isinstance(num_robots, (int, np.integer)) and num_robots >= 1):
             raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
-        if not (isinstance(episode_length, (int, np.integer)) and episode_length >= 1):
-            raise ValueError(f"episode_length must be a positive integer, got {episode_length!r}")
+        if episode_length is not None and not (isinstance(episode_length, (int, np.integer)) and episode_length >= 1):
+            raise ValueError(f"episode_length must be a positive integer or None, got {episode_length!r}")
         super().__init__(batch_size=torch.Size([num_robots]), device=device)
         self.design_distribution = design or DesignDistribution()
         self.reward_weights = reward_weights or RewardWeights()
-        self.episode_length = int(episode_length)
+        self.episode_length = None if episode_length is None else int(episode_length)
         self.append_design = append_design
         robot, physics = robot or RobotSettings(), physics or PhysicsSettings()
         self.simulations = [WalkerSimulation(robot, physics, observation) for _ in range(num_robots)]
@@ -147,7 +149,7 @@ class BatchedWalkerEnv(EnvBase):
                 self._raw[i] = simulation.last_observation
         self._steps += stepping
         reward = np.where(stepping, walking_reward(self._raw, self.reward_weights), 0.0)
-        done = self._faults | (self._steps >= self.episode_length)
+        done = self._faults if self.episode_length is None else self._faults | (self._steps >= self.episode_length)
         return self._output(
             reward=torch.as_tensor(reward, dtype=torch.float32, device=self.device).unsqueeze(-1),
             done=torch.as_tensor(done, device=self.device).unsqueeze(-1),

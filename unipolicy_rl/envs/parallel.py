@@ -65,8 +65,10 @@ class SleepingParallelEnv(ParallelEnv):
                 )
             for worker, index in workers:
                 if not flags[index] and not self._workers[worker].is_alive():
-                    self._shutdown_workers()
-                    raise RuntimeError(f"ParallelEnv worker {worker} died")
+                    try:  # TorchRL's shutdown can itself fail while the other workers exit
+                        self._shutdown_workers()
+                    finally:
+                        raise RuntimeError(f"ParallelEnv worker {worker} died")
         for _, index in workers:
             flags[index] = 0
         # Falls at once to a shorter wait, rises slowly after a long one (a reset that
