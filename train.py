@@ -36,7 +36,7 @@ from unipolicy_rl.factories import (
     make_collector,
     make_observation_norm,
 )
-from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
 
 
@@ -154,10 +154,10 @@ def main(cfg: DictConfig) -> dict:
     algo = cfg.algo
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
+    trust_region = TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
+                               backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
     updater = TRPOUpdater(
-        loss, max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
-        backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
-        critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
+        loss, trust_region=trust_region, critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
         critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
     )
     episode_length = cfg.robot.episode_length

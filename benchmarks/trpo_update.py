@@ -33,6 +33,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 import warnings
@@ -45,7 +46,7 @@ import torch
 from tensordict import TensorDict
 
 from unipolicy_rl.networks import make_actor, make_critic
-from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 
 T = TypeVar("T")
 
@@ -53,18 +54,14 @@ OBSERVATION_DIM = 18
 ACTION_DIM = 4
 EPISODE_LENGTH = 100
 NETWORK = {"hidden_sizes": (64, 64), "activation": "tanh"}
+TRUST_REGION = TrustRegion(max_kl=0.01, damping=0.1, cg_iters=10, backtrack_factor=0.8, max_backtracks=10)
 UPDATE = {
-    "cg_iters": 10,
-    "damping": 0.1,
-    "max_kl": 0.01,
-    "backtrack_factor": 0.8,
-    "max_backtracks": 10,
     "critic_epochs": 10,
     "critic_minibatch_size": 128,
     "critic_lr": 1e-3,
 }
 RETURNS = {"gamma": 0.99, "gae_lambda": 0.95}
-SETTINGS = {**NETWORK, **UPDATE, **RETURNS}
+SETTINGS = {**NETWORK, **dataclasses.asdict(TRUST_REGION), **UPDATE, **RETURNS}
 TORCH_ACTIVATIONS = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}
 
 
@@ -110,7 +107,7 @@ class OurUpdate:
         self.actor = make_actor(OBSERVATION_DIM, ACTION_DIM, **NETWORK)
         loss = TRPOLoss(self.actor, make_critic(OBSERVATION_DIM, **NETWORK))
         loss.make_value_estimator(gamma=RETURNS["gamma"], lmbda=RETURNS["gae_lambda"])
-        self.updater = TRPOUpdater(loss, **UPDATE, generator=self.generator)
+        self.updater = TRPOUpdater(loss, trust_region=TRUST_REGION, **UPDATE, generator=self.generator)
 
     def run(self) -> tuple[float, float, str]:
         batch = random_rollout(self.envs, self.steps, self.generator)
@@ -176,12 +173,12 @@ class SB3Update:
             batch_size=UPDATE["critic_minibatch_size"],
             gamma=RETURNS["gamma"],
             gae_lambda=RETURNS["gae_lambda"],
-            cg_max_steps=UPDATE["cg_iters"],
-            cg_damping=UPDATE["damping"],
-            line_search_shrinking_factor=UPDATE["backtrack_factor"],
-            line_search_max_iter=UPDATE["max_backtracks"],
+            cg_max_steps=TRUST_REGION.cg_iters,
+            cg_damping=TRUST_REGION.damping,
+            line_search_shrinking_factor=TRUST_REGION.backtrack_factor,
+            line_search_max_iter=TRUST_REGION.max_backtracks,
             n_critic_updates=UPDATE["critic_epochs"],
-            target_kl=UPDATE["max_kl"],
+            target_kl=TRUST_REGION.max_kl,
             policy_kwargs={
                 "net_arch": {"pi": list(NETWORK["hidden_sizes"]), "vf": list(NETWORK["hidden_sizes"])},
                 "activation_fn": TORCH_ACTIVATIONS[NETWORK["activation"]],

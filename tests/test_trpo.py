@@ -13,6 +13,7 @@ from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import (
     TRPOLoss,
     TRPOUpdater,
+    TrustRegion,
     critic_fit,
     fit_critic,
     kl_hessian_vector_product_fn,
@@ -143,7 +144,7 @@ def test_accepted_step_respects_trust_region_and_improves_surrogate():
     assert before["kl"].abs() < 1e-6  # data collected by this very policy
     max_kl = 0.01
 
-    result = natural_gradient_step(loss, batch, max_kl=max_kl)
+    result = natural_gradient_step(loss, batch, trust_region=TrustRegion(max_kl=max_kl))
 
     assert result.accepted and result.skip_reason is None
     after = loss(batch)
@@ -174,7 +175,7 @@ def test_rejected_line_search_restores_parameters_bit_identically(monkeypatch):
         return -direction, iterations
 
     monkeypatch.setattr(ng, "conjugate_gradient", downhill)
-    result = natural_gradient_step(loss, batch, max_backtracks=10)
+    result = natural_gradient_step(loss, batch, trust_region=TrustRegion(max_backtracks=10))
 
     assert not result.accepted
     assert "line search" in result.skip_reason
@@ -229,7 +230,8 @@ def test_trpo_solves_a_contextual_bandit():
         return -(error**2).sum(-1, keepdim=True)
 
     loss = make_loss(obs_dim=2, action_dim=2, hidden=(16,))
-    updater = TRPOUpdater(loss, max_kl=0.05, critic_lr=1e-2, critic_epochs=5, critic_minibatch_size=64)
+    updater = TRPOUpdater(loss, trust_region=TrustRegion(max_kl=0.05), critic_lr=1e-2, critic_epochs=5,
+                          critic_minibatch_size=64)
     test_obs = torch.rand(512, 2) * 2 - 1
 
     def mean_error():
@@ -348,3 +350,13 @@ def test_fit_critic_fast_path_matches_autograd_and_optimizer_step(monkeypatch):
     assert fast_loss == pytest.approx(plain_loss, rel=1e-5)
     for fast_param, plain_param in zip(fast.critic_parameters(), plain.critic_parameters(), strict=True):
         torch.testing.assert_close(fast_param, plain_param, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("setting", "value"),
+    [("max_kl", 0.0), ("max_kl", float("nan")), ("damping", -0.1), ("backtrack_factor", 1.0),
+     ("cg_iters", 0), ("max_backtracks", 2.5)],
+)
+def test_bad_trust_region_settings_raise_naming_the_value(setting, value):
+    with pytest.raises(ValueError, match=setting):
+        TrustRegion(**{setting: value})

@@ -43,6 +43,7 @@ from unipolicy_rl.objectives.trpo import TRPOLoss
 
 __all__ = [
     "TRPOStepResult",
+    "TrustRegion",
     "conjugate_gradient",
     "fisher_vector_product_fn",
     "flat_grad",
@@ -50,6 +51,43 @@ __all__ = [
     "natural_gradient_step",
     "policy_fisher_vector_product_fn",
 ]
+
+
+@dataclass(frozen=True)
+class TrustRegion:
+    """How one TRPO policy step is sized and checked. Defaults: the TRPO papers and
+    stable-baselines3-contrib.
+
+    Attributes:
+        max_kl: trust-region radius ``delta`` on the mean ``KL(old || new)``.
+        damping: added to the Fisher diagonal (conditioning of CG; 0.1 as in the TRPO
+            reference implementations).
+        cg_iters: conjugate-gradient iterations (Fisher-vector products).
+        cg_residual_tol: CG stops early when the squared residual falls below this.
+        backtrack_factor: step shrink factor between line-search tries.
+        max_backtracks: line-search tries before giving up.
+    """
+
+    max_kl: float = 0.01
+    damping: float = 0.1
+    cg_iters: int = 10
+    cg_residual_tol: float = 1e-10
+    backtrack_factor: float = 0.8
+    max_backtracks: int = 10
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.max_kl) and self.max_kl > 0):
+            raise ValueError(f"max_kl must be a positive number, got {self.max_kl!r}")
+        for name in ("damping", "cg_residual_tol"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if not 0 < self.backtrack_factor < 1:
+            raise ValueError(f"backtrack_factor must lie in (0, 1), got {self.backtrack_factor!r}")
+        for name in ("cg_iters", "max_backtracks"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -284,12 +322,7 @@ def natural_gradient_step(
     batch: TensorDictBase,
     *,
     advantage: torch.Tensor | None = None,
-    max_kl: float = 0.01,
-    damping: float = 0.1,
-    cg_iters: int = 10,
-    cg_residual_tol: float = 1e-10,
-    backtrack_factor: float = 0.8,
-    max_backtracks: int = 10,
+    trust_region: TrustRegion | None = None,
 ) -> TRPOStepResult:
     """One TRPO policy step on ``batch``; updates ``loss_module.actor_network_params`` in place.
 
@@ -299,17 +332,14 @@ def natural_gradient_step(
             advantage is computed by the loss's value estimator if missing.
         advantage: the (already normalised) advantage, shaped like ``batch``; pass it to
             avoid recomputing it.
-        max_kl: trust-region radius ``delta`` on the mean ``KL(old || new)``.
-        damping: added to the Fisher diagonal (conditioning of CG; 0.1 as in the TRPO
-            reference implementations).
-        cg_iters: conjugate-gradient iterations (Fisher-vector products).
-        cg_residual_tol: CG stops early when the squared residual falls below this.
-        backtrack_factor: step shrink factor between line-search tries.
-        max_backtracks: line-search tries before giving up.
+        trust_region: the step's radius, CG and line-search settings (default :class:`TrustRegion`).
 
     Returns:
         a :class:`TRPOStepResult`.
     """
+    trust_region = trust_region or TrustRegion()
+    max_kl, max_backtracks, backtrack_factor = (trust_region.max_kl, trust_region.max_backtracks,
+                                                trust_region.backtrack_factor)
     params = loss_module.actor_parameters()
     if advantage is None:
         advantage = loss_module.advantage(batch)
@@ -332,8 +362,10 @@ def natural_gradient_step(
             # step scale would divide by zero.
             return TRPOStepResult(False, "zero policy gradient", gradient_norm=0.0, entropy=entropy)
 
-        fisher_vector_product = policy_fisher_vector_product_fn(loss_module, dist_params, reference, damping)
-        direction, cg_iterations = conjugate_gradient(fisher_vector_product, gradient, cg_iters, cg_residual_tol)
+        fisher_vector_product = policy_fisher_vector_product_fn(loss_module, dist_params, reference,
+                                                                trust_region.damping)
+        direction, cg_iterations = conjugate_gradient(fisher_vector_product, gradient, trust_region.cg_iters,
+                                                      trust_region.cg_residual_tol)
         curvature = float(direction @ fisher_vector_product(direction))
         del fisher_vector_product  # frees the retained graphs before the line search
     surrogate_before = surrogate.detach()

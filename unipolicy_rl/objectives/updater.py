@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from unipolicy_rl.objectives.critic_fit import fit_critic, make_critic_optimizer
-from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, natural_gradient_step
+from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
 __all__ = ["TRPOUpdater"]
@@ -20,35 +20,22 @@ class TRPOUpdater:
     metrics named ``train/...``; the last :class:`TRPOStepResult` (with its skip reason) is
     kept in ``last_step``.
 
-    Defaults follow the TRPO papers / stable-baselines3-contrib: ``max_kl=0.01``,
-    ``damping=0.1``, 10 CG iterations, backtracking by 0.8 up to 10 tries, critic Adam
-    ``lr=1e-3`` for 10 epochs of minibatches of 128.
+    The policy step takes its settings from ``trust_region`` (default :class:`TrustRegion`); the critic defaults (Adam
+    ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib.
     """
 
     def __init__(
         self,
         loss_module: TRPOLoss,
         *,
-        max_kl: float = 0.01,
-        damping: float = 0.1,
-        cg_iters: int = 10,
-        cg_residual_tol: float = 1e-10,
-        backtrack_factor: float = 0.8,
-        max_backtracks: int = 10,
+        trust_region: TrustRegion | None = None,
         critic_lr: float = 1e-3,
         critic_epochs: int = 10,
         critic_minibatch_size: int = 128,
         generator: torch.Generator | None = None,
     ) -> None:
         self.loss_module = loss_module
-        self.step_kwargs = {
-            "max_kl": max_kl,
-            "damping": damping,
-            "cg_iters": cg_iters,
-            "cg_residual_tol": cg_residual_tol,
-            "backtrack_factor": backtrack_factor,
-            "max_backtracks": max_backtracks,
-        }
+        self.trust_region = trust_region or TrustRegion()
         self.critic_optimizer = make_critic_optimizer(loss_module, critic_lr)
         self.critic_epochs = critic_epochs
         self.critic_minibatch_size = critic_minibatch_size
@@ -61,7 +48,7 @@ class TRPOUpdater:
         loss.compute_advantage(batch)
         flat = batch.reshape(-1)
         advantage = loss.advantage(flat)
-        step = natural_gradient_step(loss, flat, advantage=advantage, **self.step_kwargs)
+        step = natural_gradient_step(loss, flat, advantage=advantage, trust_region=self.trust_region)
         self.last_step = step
         metrics = step.as_metrics("train/")
         metrics["train/explained_variance"] = _explained_variance(
