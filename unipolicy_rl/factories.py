@@ -58,10 +58,13 @@ def robots_per_worker(cfg: DictConfig) -> int:
     return episodes // workers
 
 
-def make_observation_norm(observation_dim: int) -> ObservationNorm:
-    """The policy's input normaliser (identity until statistics are copied in)."""
-    return ObservationNorm(loc=torch.zeros(observation_dim), scale=torch.ones(observation_dim),
-                           standard_normal=True, in_keys=["observation"], out_keys=[NORMALIZED_OBSERVATION])
+def make_observation_norm(observation_dim: int, loc: torch.Tensor | None = None,
+                          scale: torch.Tensor | None = None) -> ObservationNorm:
+    """The policy's input normaliser: ``(observation - loc) / scale``, identity by default."""
+    loc = torch.zeros(observation_dim) if loc is None else loc.clone()
+    scale = torch.ones(observation_dim) if scale is None else scale.clone()
+    return ObservationNorm(loc=loc, scale=scale, standard_normal=True, in_keys=["observation"],
+                           out_keys=[NORMALIZED_OBSERVATION])
 
 
 def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int) -> Collector | MultiSyncCollector:

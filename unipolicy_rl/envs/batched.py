@@ -29,7 +29,7 @@ class BatchedWalkerEnv(EnvBase):
     Keys: ``observation`` (float32), ``design`` (l, rho of each robot's current build),
     ``physics_fault`` (the step blew up and was truncated), plus TorchRL's reward and
     done/terminated/truncated. Episodes are truncated after ``episode_length`` steps, or
-    never with ``None`` (the caller ends them, e.g. a collector's ``set_truncated``), and
+    never with ``None`` (the caller ends them, as training's collector does), and
     early on a physics fault. Partial resets (``_reset`` mask) rebuild only the masked
     robots; an explicit ``design`` in the reset tensordict overrides the distribution
     for those robots (used by evaluation). Same seed, same trajectories.

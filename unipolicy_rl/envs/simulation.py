@@ -130,10 +130,10 @@ class WalkerSimulation:
         several times cheaper. Saving only on a repeat keeps the save off the SE path, where
         designs never repeat.
         """
-        if self.body is not None and design == self.design and self._built_state is not None:
+        repeat = self.body is not None and design == self.design
+        if repeat and self._built_state is not None:
             pybullet.restoreState(self._built_state, physicsClientId=self.client)
         else:
-            repeat = self.body is not None and design == self.design
             self._build(design)
             if repeat:
                 self._built_state = pybullet.saveState(physicsClientId=self.client)
