@@ -261,6 +261,8 @@ def test_batched_env_truncates_a_faulted_robot_only():
     env = BatchedWalkerEnv(2, design=DesignDistribution.fixed(0.175, 0.5))
     env.set_seed(0)
     td = env.reset()
+    # One healthy step first: the fault must repeat this step's observation, not the reset's.
+    td = env.step(td.set("action", torch.full((2, 4), 0.5)))["next"]
     previous = td["observation"].clone()
     faulty = env.simulations[1]
     pybullet.resetBasePositionAndOrientation(faulty.body.body_id, (1e4, 0, 1), (0, 0, 0, 1),

@@ -30,9 +30,10 @@ class BatchedWalkerEnv(EnvBase):
     ``physics_fault`` (the step blew up and was truncated), plus TorchRL's reward and
     done/terminated/truncated. Episodes are truncated after ``episode_length`` steps, or
     never with ``None`` (the caller ends them, as training's collector does), and
-    early on a physics fault. Partial resets (``_reset`` mask) rebuild only the masked
-    robots; an explicit ``design`` in the reset tensordict overrides the distribution
-    for those robots (used by evaluation). Same seed, same trajectories.
+    early on a physics fault, which repeats the robot's last good observation. Partial
+    resets (``_reset`` mask) rebuild only the masked robots; an explicit ``design`` in the
+    reset tensordict overrides the distribution for those robots (used by evaluation).
+    Same seed, same trajectories.
     """
 
     batch_locked = True
@@ -65,6 +66,10 @@ class BatchedWalkerEnv(EnvBase):
         self._steps = np.zeros(num_robots, dtype=np.int64)
         raw_size = self.simulations[0].observation_size
         self._raw = np.zeros((num_robots, raw_size))
+        # Per robot: what turns its world-frame state into its observation, and its last
+        # healthy observation; kept here as arrays so a step handles the batch at once.
+        self._start_offsets = np.zeros((num_robots, raw_size))
+        self._last_good = np.zeros((num_robots, raw_size))
         self._designs = np.zeros((num_robots, 2))
         self._faults = np.zeros(num_robots, dtype=bool)
         self._make_specs(raw_size + (2 if append_design else 0), self.simulations[0].num_actions)
@@ -115,7 +120,8 @@ class BatchedWalkerEnv(EnvBase):
                 explicit = tensordict.get("design").reshape(n, 2).cpu().double().numpy()
         for i in np.flatnonzero(mask):
             design = Design(*explicit[i]) if explicit is not None else self.design_distribution.sample(self._rng)
-            self._raw[i] = self.simulations[i].reset(design)
+            self._raw[i] = self._last_good[i] = self.simulations[i].reset(design)
+            self._start_offsets[i] = self.simulations[i].start_offset
             self._designs[i] = (design.length, design.density)
             self._steps[i] = 0
             self._faults[i] = False
@@ -137,16 +143,12 @@ class BatchedWalkerEnv(EnvBase):
             simulation.advance(targets[i])
             states.append(simulation.world_state())
         if states:
-            origins = np.array([self.simulations[i].origin for i in active])
-            self._raw[active] = self.simulations[0].to_start_frame(np.array(states), origins)
+            self._raw[active] = np.array(states) - self._start_offsets[active]
         healthy = healthy_rows(self._raw)
-        self._faults = self._faults | (stepping & ~healthy)
-        for i in np.flatnonzero(stepping):
-            simulation = self.simulations[i]
-            if healthy[i]:
-                simulation.last_observation = self._raw[i].copy()
-            else:  # keep the last good observation so no NaN leaves the env
-                self._raw[i] = simulation.last_observation
+        faulted = stepping & ~healthy
+        self._faults = self._faults | faulted
+        self._last_good[stepping & healthy] = self._raw[stepping & healthy]
+        self._raw[faulted] = self._last_good[faulted]  # so no NaN leaves the env
         self._steps += stepping
         reward = np.where(stepping, walking_reward(self._raw, self.reward_weights), 0.0)
         done = self._faults if self.episode_length is None else self._faults | (self._steps >= self.episode_length)

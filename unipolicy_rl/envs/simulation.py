@@ -90,8 +90,8 @@ def joint_targets(actions: np.ndarray, action_range: float) -> np.ndarray:
 
 def healthy_rows(observations: np.ndarray) -> np.ndarray:
     """True for each observation (last axis) that is finite and within the explosion limit."""
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(observations).all(axis=-1) & (np.abs(observations).max(axis=-1) < EXPLOSION_LIMIT)
+    # One comparison covers both: NaN and inf compare False.
+    return (np.abs(observations) < EXPLOSION_LIMIT).all(axis=-1)
 
 
 class WalkerSimulation:
@@ -112,13 +112,13 @@ class WalkerSimulation:
             6 * len(self._link_names) + 2 * self.num_actions
         )
         # Each observed body (the base, then links) contributes position xyz and velocity xyz.
-        self._positions_per_observation = 1 + (len(robot.observed_links) if observation == "thesis"
-                                               else len(self._link_names) - 1)
-        self._xy_columns = np.array([6 * k + axis for k in range(self._positions_per_observation) for axis in (0, 1)])
+        positions_per_observation = 1 + (len(robot.observed_links) if observation == "thesis"
+                                         else len(self._link_names) - 1)
+        self._xy_columns = np.array([6 * k + axis for k in range(positions_per_observation) for axis in (0, 1)])
         self.client = pybullet.connect(pybullet.DIRECT)
         self.body: RobotBody | None = None
         self.design: Design | None = None
-        self._origin = np.zeros(2)
+        self.start_offset = np.zeros(self.observation_size)
         self.last_observation = np.zeros(self.observation_size)
 
     # -- lifecycle -----------------------------------------------------------------
@@ -139,7 +139,10 @@ class WalkerSimulation:
                 self._built_state = pybullet.saveState(physicsClientId=self.client)
         self._drive(np.zeros(self.num_actions))
         base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
-        self._origin = np.array(base_position[:2])
+        # Positions are measured from where the base started, as in the thesis' fixed global
+        # frame: the observation is the world-frame state minus this offset (x, y only).
+        self.start_offset = np.zeros(self.observation_size)
+        self.start_offset[self._xy_columns] = np.tile(base_position[:2], len(self._xy_columns) // 2)
         self.last_observation = self.read()
         return self.last_observation.copy()
 
@@ -207,12 +210,13 @@ class WalkerSimulation:
     # -- state ---------------------------------------------------------------------
     def read(self) -> np.ndarray:
         """The current observation, unchecked (see :func:`healthy_rows`)."""
-        return self.to_start_frame(np.asarray(self.world_state()), self.origin)
+        return np.subtract(self.world_state(), self.start_offset)
 
     def world_state(self) -> list[float]:
         """The observation's values with positions in the world frame, as PyBullet gives them.
 
-        A plain list, so a batch of robots becomes one array in one conversion.
+        Subtracting :attr:`start_offset` gives the observation. A plain list, so a batch of
+        robots becomes one array in one conversion.
         """
         body, client = self.body.body_id, self.client
         position, _ = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
@@ -227,20 +231,6 @@ class WalkerSimulation:
             joints = pybullet.getJointStates(body, self.body.actuated_joint_indices, physicsClientId=client)
             values += [joint[0] for joint in joints] + [joint[1] for joint in joints]
         return values
-
-    def to_start_frame(self, observations: np.ndarray, origins: np.ndarray) -> np.ndarray:
-        """Shifts x, y of every position by where its robot started (in place; also returned).
-
-        Positions are measured from the start, as the thesis' fixed global frame. Works on one
-        observation with its ``origin`` (2,) or on a batch with ``origins`` (batch, 2).
-        """
-        observations[..., self._xy_columns] -= np.tile(origins, self._positions_per_observation)
-        return observations
-
-    @property
-    def origin(self) -> np.ndarray:
-        """Where the base started this episode (x, y, world frame)."""
-        return self._origin
 
     def base_position(self) -> np.ndarray:
         """Base link position relative to its start (x, y) and its height (z)."""
