@@ -3,8 +3,9 @@
     python benchmarks/env_throughput.py [--actions 3000] [--repeats 3]
 
 Every variant runs the DE robot, 16 physics steps per action, uniform random actions
-drawn before timing, 100-action episodes on the same world (plane, friction, motors). The raw loop is the
-physics alone: motor command, 16 ``stepSimulation`` calls, a state restore per episode.
+drawn before timing, 100-action episodes on the same world (plane, friction, motors). The
+raw loop is the physics alone: motor command, 16 ``stepSimulation`` calls, a state
+restore per episode.
 Prints actions/s (median of the repeats), each ratio to the raw loop and the share of a
 core this process used (for a ParallelEnv: its parent), then how two worker processes
 compare with one process (TorchRL's stock ``ParallelEnv``, which

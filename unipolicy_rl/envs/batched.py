@@ -67,7 +67,8 @@ class BatchedWalkerEnv(EnvBase):
         raw_size = self.simulations[0].observation_size
         self._raw = np.zeros((num_robots, raw_size))
         # Per robot: what turns its world-frame state into its observation, and its last
-        # healthy observation; kept here as arrays so a step handles the batch at once.
+        # healthy observation; kept here as arrays so a step handles the batch at once
+        # (a simulation's own last_observation belongs to its step(), which is not used here).
         self._start_offsets = np.zeros((num_robots, raw_size))
         self._last_good = np.zeros((num_robots, raw_size))
         self._designs = np.zeros((num_robots, 2))
