@@ -1,6 +1,7 @@
 """WalkerEnv (gymnasium) and BatchedWalkerEnv (TorchRL): checkers, determinism, faults, bad input."""
 
 import functools
+import multiprocessing
 import threading
 import time
 
@@ -25,7 +26,7 @@ from unipolicy_rl.envs import (
     walking_reward,
 )
 from unipolicy_rl.envs.gait import SineGait, walk
-from unipolicy_rl.envs.parallel import SleepingParallelEnv
+from unipolicy_rl.envs.parallel import SleepingParallelEnv, WakingDoneFlags
 
 
 def test_gymnasium_checker_passes():
@@ -230,9 +231,15 @@ def test_sleeping_parallel_env_reports_a_worker_that_dies_mid_rollout():
     assert time.perf_counter() - started < 5.0  # found within seconds, not after the rollout
 
 
-def test_sleeping_parallel_env_rejects_a_bad_poll_interval():
-    with pytest.raises(ValueError, match="-1"):
-        SleepingParallelEnv(2, BatchedWalkerEnv, poll_interval=-1)
+def test_waking_done_flags_count_only_a_set_byte_as_done():
+    flags = WakingDoneFlags(multiprocessing.RawArray("b", 2), multiprocessing.get_context("fork"))
+    flags.semaphores[0].release()  # a stale post, as a close command leaves behind
+    started = time.perf_counter()
+    assert not flags.wait(0, timeout=0.05)
+    assert time.perf_counter() - started >= 0.05
+    threading.Timer(0.05, flags.__setitem__, (1, 1)).start()
+    assert flags.wait(1, timeout=5.0)
+    assert flags[1] == 1 and flags[0] == 0
 
 
 def test_sine_gait_walks_the_de_robot_forward():
