@@ -7,10 +7,11 @@ drawn before timing, 100-action episodes on the same world (plane, friction, mot
 raw loop is the physics alone: motor command, 16 ``stepSimulation`` calls, a state
 restore per episode.
 Prints actions/s (median of the repeats), each ratio to the raw loop and the share of a
-core this process used (for a ParallelEnv: its parent), then how two worker processes
-compare with one process (TorchRL's stock ``ParallelEnv``, which
-spin-waits, and our ``SleepingParallelEnv``); the last line is
-``env_throughput_ratio: <batched N=32 / raw>``.
+core this process used (for a ParallelEnv: its parent), then the headline ratios, each
+paired within a repeat: how two worker processes compare with one process (TorchRL's
+stock ``ParallelEnv``, which spin-waits, and our ``SleepingParallelEnv``) and the
+batched env at N=32 against the raw loop. The last line is
+``env_throughput_ratio: <batched N=32 / raw, median of the paired ratios>``.
 """
 
 from __future__ import annotations
@@ -56,35 +57,43 @@ class Stopwatch:
         return actions / self.wall, self.cpu / self.wall
 
 
-def raw_pybullet(actions: int, episode_length: int = 100) -> tuple[float, float]:
+def raw_pybullet(actions: int, episode_length: int = 100, worlds: int = 1) -> tuple[float, float]:
     """The physics limit: motor command plus 16 stepSimulation calls per action, nothing else.
 
     The world (plane, robot, friction) is built by the env's own simulation class, untimed,
     so both sides simulate the same contacts; episodes end every ``episode_length``
     actions with a ``restoreState`` to the standing robot, as the envs' DE resets do.
     A robot that is never reset ends up lying still, which is cheaper to simulate.
+    With ``worlds`` > 1 the actions go round that many clients, one robot each, as a
+    batched env steps its robots: the same physics, minus everything the env adds.
     """
     physics = PhysicsSettings()
-    simulation = WalkerSimulation(RobotSettings(), physics)
-    simulation.reset(DE.mean)
-    client, body = simulation.client, simulation.body
-    standing = pybullet.saveState(physicsClientId=client)
+    simulations = [WalkerSimulation(RobotSettings(), physics) for _ in range(worlds)]
+    for simulation in simulations:
+        simulation.reset(DE.mean)
+    clients = [simulation.client for simulation in simulations]
+    standing = [pybullet.saveState(physicsClientId=client) for client in clients]
+    body = simulations[0].body  # every world builds the same ids
     joints, n = body.actuated_joint_indices, len(body.actuated_joint_indices)
-    targets = np.random.default_rng(0).uniform(-physics.action_range, physics.action_range, (actions, n)).tolist()
+    rounds = max(1, actions // worlds)
+    targets = np.random.default_rng(0).uniform(
+        -physics.action_range, physics.action_range, (rounds, worlds, n)).tolist()
     forces, position_gains, velocity_gains = ([value] * n for value in
                                               (physics.max_torque, physics.position_gain, physics.velocity_gain))
     with Stopwatch() as stopwatch:
-        for step, target in enumerate(targets):
-            if step % episode_length == 0:
-                pybullet.restoreState(standing, physicsClientId=client)
-            pybullet.setJointMotorControlArray(
-                body.body_id, joints, pybullet.POSITION_CONTROL, targetPositions=target, forces=forces,
-                positionGains=position_gains, velocityGains=velocity_gains, physicsClientId=client,
-            )
-            for _ in range(physics.substeps):
-                pybullet.stepSimulation(physicsClientId=client)
-    simulation.close()
-    return stopwatch.result(actions)
+        for step, round_targets in enumerate(targets):
+            for client, state, target in zip(clients, standing, round_targets, strict=True):
+                if step % episode_length == 0:
+                    pybullet.restoreState(state, physicsClientId=client)
+                pybullet.setJointMotorControlArray(
+                    body.body_id, joints, pybullet.POSITION_CONTROL, targetPositions=target, forces=forces,
+                    positionGains=position_gains, velocityGains=velocity_gains, physicsClientId=client,
+                )
+                for _ in range(physics.substeps):
+                    pybullet.stepSimulation(physicsClientId=client)
+    for simulation in simulations:
+        simulation.close()
+    return stopwatch.result(rounds * worlds)
 
 
 def gymnasium_env(actions: int) -> tuple[float, float]:
@@ -144,6 +153,7 @@ def main() -> None:
 
     variants = {
         "raw PyBullet loop": raw_pybullet,
+        "raw PyBullet loop, 32 worlds in turn": functools.partial(raw_pybullet, worlds=32),
         "WalkerEnv (gymnasium)": gymnasium_env,
         **{
             f"BatchedWalkerEnv N={n}": functools.partial(torchrl_env, functools.partial(BatchedWalkerEnv, n, DE))
@@ -161,17 +171,33 @@ def main() -> None:
     for _ in range(args.repeats):  # interleave repeats so drift in machine load hits every variant
         for name, run in variants.items():
             results[name].append(run(args.actions))
-    medians = {name: statistics.median(rate for rate, _ in values) for name, values in results.items()}
+    rates = {name: [rate for rate, _ in values] for name, values in results.items()}
     cpu_shares = {name: statistics.median(share for _, share in values) for name, values in results.items()}
-    raw = medians["raw PyBullet loop"]
+    raw = statistics.median(rates["raw PyBullet loop"])
     print(f"{'variant':40s} {'actions/s':>10s} {'x raw':>7s} {'CPU of this process':>20s}")
-    for name, rate in medians.items():
-        print(f"{name:40s} {rate:10.0f} {rate / raw:7.3f} {cpu_shares[name]:20.2f}")
-    single = medians["BatchedWalkerEnv N=32"]
-    for name in medians:
+    for name, values in rates.items():
+        print(f"{name:40s} {statistics.median(values):10.0f} {statistics.median(values) / raw:7.3f} "
+              f"{cpu_shares[name]:20.2f}")
+    # The headline ratios pair each repeat's two runs, made seconds apart, and take the median
+    # over repeats: a change in machine load between repeats then moves both sides of a ratio.
+    print("paired ratios, median (min-max) over repeats:")
+    single = rates["BatchedWalkerEnv N=32"]
+    for name in rates:
         if "2 workers" in name:
-            print(f"{name} / BatchedWalkerEnv N=32 (2 cores / 1 core): {medians[name] / single:.3f}")
-    print(f"env_throughput_ratio: {single / raw:.3f}")
+            print(f"{name} / BatchedWalkerEnv N=32 (2 cores / 1 core): {paired(rates[name], single)}")
+    print(f"BatchedWalkerEnv N=32 / raw PyBullet loop: {paired(single, rates['raw PyBullet loop'])}")
+    print("BatchedWalkerEnv N=32 / raw loop over 32 worlds (what the env adds to the physics): "
+          f"{paired(single, rates['raw PyBullet loop, 32 worlds in turn'])}")
+    print(f"env_throughput_ratio: {statistics.median(paired_ratios(single, rates['raw PyBullet loop'])):.3f}")
+
+
+def paired_ratios(numerators: list[float], denominators: list[float]) -> list[float]:
+    return [top / bottom for top, bottom in zip(numerators, denominators, strict=True)]
+
+
+def paired(numerators: list[float], denominators: list[float]) -> str:
+    ratios = paired_ratios(numerators, denominators)
+    return f"{statistics.median(ratios):.3f} ({min(ratios):.3f}-{max(ratios):.3f})"
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import pybullet
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from tensordict import TensorDict
 from torchrl.envs import ParallelEnv
 from torchrl.envs.utils import check_env_specs
 
@@ -279,4 +280,7 @@ def test_batched_env_truncates_a_faulted_robot_only():
     assert out["truncated"].flatten().tolist() == [False, True]
     torch.testing.assert_close(out["observation"][1], previous[1])
     assert torch.isfinite(out["reward"]).all()
+    # The flags handed out are the step's own: resetting the robot does not rewrite them.
+    env.reset(TensorDict({"_reset": torch.tensor([[False], [True]])}, batch_size=[2]))
+    assert out["physics_fault"].flatten().tolist() == [False, True]
     env.close()

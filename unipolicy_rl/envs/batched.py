@@ -73,6 +73,7 @@ class BatchedWalkerEnv(EnvBase):
         self._last_good = np.zeros((num_robots, raw_size))
         self._designs = np.zeros((num_robots, 2))
         self._faults = np.zeros(num_robots, dtype=bool)
+        self._all_robots = np.ones(num_robots, dtype=bool)
         self._make_specs(raw_size + (2 if append_design else 0), self.simulations[0].num_actions)
 
     def _make_specs(self, observation_size: int, num_actions: int) -> None:
@@ -92,23 +93,29 @@ class BatchedWalkerEnv(EnvBase):
     def control_period(self) -> float:
         return self.simulations[0].physics.control_period
 
-    def _observation(self) -> torch.Tensor:
-        observation = np.concatenate([self._raw, self._designs], axis=1) if self.append_design else self._raw
-        return torch.as_tensor(observation, dtype=torch.float32, device=self.device)
-
-    def _output(self, reward=None, done=None) -> TensorDict:
+    def _output(self, reward: np.ndarray | None = None, done: np.ndarray | None = None) -> TensorDict:
+        # Every entry is built in numpy and wrapped by torch.from_numpy without a copy:
+        # right after 32 robots' physics, torch's own conversions run from cold caches and
+        # cost more than numpy's.
         n = self.batch_size[0]
+        observation = np.concatenate([self._raw, self._designs], axis=1) if self.append_design else self._raw
+        # Copies, never views: the flags array changes in place on later steps and resets,
+        # and ``done`` may be that array.
+        done = np.zeros((n, 1), dtype=bool) if done is None else done.reshape(n, 1).copy()
         out = {
-            "observation": self._observation(),
-            "design": torch.as_tensor(self._designs, dtype=torch.float32, device=self.device),
-            "physics_fault": torch.as_tensor(self._faults, device=self.device).unsqueeze(-1),
+            "observation": observation.astype(np.float32),
+            "design": self._designs.astype(np.float32),
+            "physics_fault": self._faults.reshape(n, 1).copy(),
+            "done": done,
+            "terminated": np.zeros_like(done),
+            "truncated": done.copy(),
         }
-        if done is None:
-            done = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        out.update(done=done, terminated=torch.zeros_like(done), truncated=done.clone())
         if reward is not None:
-            out["reward"] = reward
-        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+            out["reward"] = reward.astype(np.float32).reshape(n, 1)
+        tensors = {key: torch.from_numpy(value) for key, value in out.items()}
+        if self.device.type != "cpu":
+            tensors = {key: value.to(self.device) for key, value in tensors.items()}
+        return TensorDict(tensors, batch_size=self.batch_size, device=self.device)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         n = self.batch_size[0]
@@ -135,28 +142,31 @@ class BatchedWalkerEnv(EnvBase):
         # flags, and get zero reward.
         n = self.batch_size[0]
         stepping = tensordict.get("_step", None)
-        stepping = np.ones(n, dtype=bool) if stepping is None else stepping.reshape(n).cpu().numpy()
-        targets = joint_targets(tensordict.get("action").detach().cpu().numpy(), self._action_range)
+        stepping = self._all_robots if stepping is None else stepping.reshape(n).cpu().numpy()
+        targets = joint_targets(tensordict.get("action").detach().cpu().numpy(), self._action_range).tolist()
         active = np.flatnonzero(stepping)
         states = []
         for i in active:  # read each robot right after its physics, while its world is in cache
             simulation = self.simulations[i]
             simulation.advance(targets[i])
             states.append(simulation.world_state())
-        if states:
-            self._raw[active] = np.array(states) - self._start_offsets[active]
-        healthy = healthy_rows(self._raw)
-        faulted = stepping & ~healthy
-        self._faults = self._faults | faulted
-        self._last_good[stepping & healthy] = self._raw[stepping & healthy]
-        self._raw[faulted] = self._last_good[faulted]  # so no NaN leaves the env
+        if len(active) == n:
+            np.subtract(states, self._start_offsets, out=self._raw)
+        elif states:
+            self._raw[active] = np.subtract(states, self._start_offsets[active])
+        good = stepping & healthy_rows(self._raw)
+        if good.all():  # the usual step: every robot stepped and none blew up
+            np.copyto(self._last_good, self._raw)
+            reward = walking_reward(self._raw, self.reward_weights)
+        else:
+            faulted = stepping & ~good
+            self._faults |= faulted
+            self._last_good[good] = self._raw[good]
+            self._raw[faulted] = self._last_good[faulted]  # so no NaN leaves the env
+            reward = np.where(stepping, walking_reward(self._raw, self.reward_weights), 0.0)
         self._steps += stepping
-        reward = np.where(stepping, walking_reward(self._raw, self.reward_weights), 0.0)
         done = self._faults if self.episode_length is None else self._faults | (self._steps >= self.episode_length)
-        return self._output(
-            reward=torch.as_tensor(reward, dtype=torch.float32, device=self.device).unsqueeze(-1),
-            done=torch.as_tensor(done, device=self.device).unsqueeze(-1),
-        )
+        return self._output(reward, done)
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng = np.random.default_rng(seed)

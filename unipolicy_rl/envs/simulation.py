@@ -7,6 +7,7 @@ there is a single place where physics settings, observations and fault handling 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -137,7 +138,7 @@ class WalkerSimulation:
             self._build(design)
             if repeat:
                 self._built_state = pybullet.saveState(physicsClientId=self.client)
-        self._drive(np.zeros(self.num_actions))
+        self._drive([0.0] * self.num_actions)
         base_position, _ = pybullet.getBasePositionAndOrientation(self.body.body_id, physicsClientId=self.client)
         # Positions are measured from where the base started, as in the thesis' fixed global
         # frame: the observation is the world-frame state minus this offset (x, y only).
@@ -191,21 +192,25 @@ class WalkerSimulation:
         A faulted step (non-finite or exploding state) returns the last good observation,
         so no NaN ever reaches a policy or a replay buffer; the caller ends the episode.
         """
-        self.advance(joint_targets(action, self.physics.action_range))
+        self.advance(joint_targets(action, self.physics.action_range).tolist())
         observation = self.read()
         if not healthy_rows(observation):
             return self.last_observation.copy(), True
         self.last_observation = observation
         return observation, False
 
-    def advance(self, targets: np.ndarray) -> None:
-        """Sets the motor targets (rad) and runs one control period of physics."""
+    def advance(self, targets: Sequence[float]) -> None:
+        """Sets the motor targets (rad, one per actuated joint) and runs one control period of physics.
+
+        Takes plain floats: a batch converts its whole target array to lists once
+        (``ndarray.tolist``) instead of once per robot.
+        """
         self._drive(targets)
         for _ in range(self.physics.substeps):
             pybullet.stepSimulation(physicsClientId=self.client)
 
-    def _drive(self, targets: np.ndarray) -> None:
-        pybullet.setJointMotorControlArray(targetPositions=targets.tolist(), **self._motor_command)
+    def _drive(self, targets: Sequence[float]) -> None:
+        pybullet.setJointMotorControlArray(targetPositions=targets, **self._motor_command)
 
     # -- state ---------------------------------------------------------------------
     def read(self) -> np.ndarray:
