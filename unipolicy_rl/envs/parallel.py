@@ -35,9 +35,6 @@ class WakingDoneFlags:
         self.flags = flags
         self.semaphores = [context.Semaphore(0) for _ in range(len(flags))]
 
-    def __len__(self) -> int:
-        return len(self.flags)
-
     def __getitem__(self, index: int) -> int:
         return self.flags[index]
 
@@ -96,4 +93,4 @@ class SleepingParallelEnv(ParallelEnv):
                     finally:
                         raise RuntimeError(f"ParallelEnv worker {worker} died")
         for worker in workers_range:
-            flags.flags[self._worker_indices[worker]] = 0
+            flags[self._worker_indices[worker]] = 0  # clearing posts nothing
