@@ -57,6 +57,29 @@ def test_design_shows_in_pybullet_masses_and_lengths():
     assert long == pytest.approx(0.20, abs=1e-6)
 
 
+def test_links_are_bare_capsules_with_the_cylinder_inertia_along_their_axis():
+    """Each capsule sits at its link's centre of mass with no turn (else PyBullet wraps it in
+    a compound shape, a slower world), and the inertia is still that of a cylinder along the
+    link's x axis, as the description defines it."""
+    design = Design(0.175, 0.5)
+    simulation = WalkerSimulation(RobotSettings(), PhysicsSettings())
+    simulation.reset(design)
+    body, client = simulation.body.body_id, simulation.client
+    description = simulation.robot_settings.describe(design)
+    for link in description.links:
+        index = simulation.body.link_index(link.name)
+        (shape,) = pybullet.getCollisionShapeData(body, index, physicsClientId=client)
+        assert shape[2] == pybullet.GEOM_CAPSULE
+        assert shape[5] == pytest.approx((0, 0, 0)) and shape[6] == pytest.approx((0, 0, 0, 1))
+        mass, _, diagonal, _, inertial_turn = pybullet.getDynamicsInfo(body, index, physicsClientId=client)[:5]
+        turn = np.array(pybullet.getMatrixFromQuaternion(inertial_turn)).reshape(3, 3)
+        in_link_frame = turn @ np.diag(diagonal) @ turn.T
+        axial = 0.5 * mass * link.radius**2
+        transverse = mass * (3 * link.radius**2 + link.length**2) / 12
+        assert in_link_frame == pytest.approx(np.diag([axial, transverse, transverse]), abs=1e-9)
+    simulation.close()
+
+
 def test_urdf_export_loads_in_a_fresh_client(tmp_path):
     robot = vertebrate(0.18, 0.45)
     path = write_urdf(robot, tmp_path / "vertebrate.urdf")

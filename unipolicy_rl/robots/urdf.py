@@ -21,12 +21,15 @@ def _vector(values) -> str:
 
 
 def _inertia(link: Link) -> str:
-    """Solid cylinder of the capsule's length along x: close to the capsule, and exact in mass."""
+    """Solid cylinder of the capsule's length: close to the capsule, and exact in mass.
+
+    Written in the capsule's own frame (its axis along z, see :func:`_link`).
+    """
     mass, radius, length = link.mass, link.radius, link.length
     axial = 0.5 * mass * radius**2
     transverse = mass * (3 * radius**2 + length**2) / 12.0
     return (
-        f'<inertia ixx="{axial:.9g}" iyy="{transverse:.9g}" izz="{transverse:.9g}" ixy="0" ixz="0" iyz="0"/>'
+        f'<inertia ixx="{transverse:.9g}" iyy="{transverse:.9g}" izz="{axial:.9g}" ixy="0" ixz="0" iyz="0"/>'
     )
 
 
@@ -51,11 +54,19 @@ def _visuals(link: Link) -> str:
 
 
 def _link(link: Link, visuals: bool) -> str:
+    """A capsule along the link's x axis, its inertial frame the capsule's own frame.
+
+    URDF capsules lie along their frame's z axis, so the collision is turned onto x. The
+    inertial frame gets the same turn: when a link's collision frame and inertial frame
+    coincide, PyBullet attaches the capsule to the link directly; otherwise it wraps it in
+    a one-child compound shape, which made every physics step 5% slower on one robot and
+    8% slower with 32 robots in one process (more memory per world to cycle through).
+    """
     centre = _vector((link.length / 2, 0.0, 0.0))
     along_x = _vector((0.0, math.pi / 2, 0.0))
     return f"""  <link name={quoteattr(link.name)}>
     <inertial>
-      <origin xyz="{centre}" rpy="0 0 0"/>
+      <origin xyz="{centre}" rpy="{along_x}"/>
       <mass value="{link.mass:.9g}"/>
       {_inertia(link)}
     </inertial>
