@@ -59,8 +59,8 @@ def _link(link: Link, visuals: bool) -> str:
     URDF capsules lie along their frame's z axis, so the collision is turned onto x. The
     inertial frame gets the same turn: when a link's collision frame and inertial frame
     coincide, PyBullet attaches the capsule to the link directly; otherwise it wraps it in
-    a one-child compound shape; removing those gave 5% more actions/s on one robot and 8%
-    with 32 robots in one process, where less memory per world means fewer cache misses.
+    a one-child compound shape, a slower world to step and a larger one to keep in cache
+    (docs/results.md has what removing them gained).
     """
     centre = _vector((link.length / 2, 0.0, 0.0))
     along_x = _vector((0.0, math.pi / 2, 0.0))
