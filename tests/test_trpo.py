@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 
 import pytest
@@ -322,11 +324,11 @@ def test_fit_critic_reduces_critic_loss():
     optimizer = make_critic_optimizer(loss, lr=3e-3)
     generator = torch.Generator().manual_seed(1)
 
-    mean_loss = fit_critic(loss, batch, optimizer, 20, 64, generator)
+    result = fit_critic(loss, batch, optimizer, 20, 64, generator)
 
     with torch.no_grad():
         after = loss.critic_loss(batch).item()
-    assert math.isfinite(mean_loss)
+    assert result.fitted and result.skip_reason is None and math.isfinite(result.loss)
     assert after < 0.5 * before
 
 
@@ -338,18 +340,151 @@ def test_fit_critic_fast_path_matches_autograd_and_optimizer_step(monkeypatch):
     batch = collect(fast, torch.randn(300, 3))
     fast.compute_advantage(batch)
 
-    fast_loss = fit_critic(fast, batch, make_critic_optimizer(fast), 3, 64, torch.Generator().manual_seed(0))
+    fast_loss = fit_critic(fast, batch, make_critic_optimizer(fast), 3, 64, torch.Generator().manual_seed(0)).loss
 
     class SteppedAdam(torch.optim.Adam):  # not a plain Adam: fit_critic calls .step()
         pass
 
     monkeypatch.setattr(critic_fit._PlainMLPRegression, "from_critic", classmethod(lambda cls, m: None))
     plain_optimizer = SteppedAdam(plain.critic_parameters(), lr=1e-3)
-    plain_loss = fit_critic(plain, batch, plain_optimizer, 3, 64, torch.Generator().manual_seed(0))
+    plain_loss = fit_critic(plain, batch, plain_optimizer, 3, 64, torch.Generator().manual_seed(0)).loss
 
     assert fast_loss == pytest.approx(plain_loss, rel=1e-5)
     for fast_param, plain_param in zip(fast.critic_parameters(), plain.critic_parameters(), strict=True):
         torch.testing.assert_close(fast_param, plain_param, atol=1e-6, rtol=1e-5)
+
+
+def _kernel_unlike_torchs(change: str):
+    """A stand-in for torch's private Adam kernel whose signature differs as a release might.
+
+    Calling it fails the test: the critic fit must notice the change and not call it.
+    """
+    from torch.optim.adam import adam
+
+    parameters = list(inspect.signature(adam).parameters.values())
+    if change == "renamed":
+        parameters = [p.replace(name="beta_1") if p.name == "beta1" else p for p in parameters]
+    elif change == "new required":
+        parameters.append(inspect.Parameter("grad_clip", inspect.Parameter.KEYWORD_ONLY))
+    elif change == "positional only":
+        parameters = [p.replace(kind=inspect.Parameter.POSITIONAL_ONLY, default=inspect.Parameter.empty)
+                      for p in parameters]
+
+    def kernel(*args, **kwargs):
+        raise AssertionError(f"called a kernel with a changed signature ({change})")
+
+    kernel.__signature__ = inspect.Signature(parameters)
+    return kernel
+
+
+@pytest.mark.parametrize("change", ["renamed", "new required", "positional only", "missing"])
+def test_fit_critic_falls_back_to_optimizer_step_when_the_private_adam_kernel_changes(monkeypatch, change):
+    """With torch's private Adam kernel unusable, Adam is stepped publicly: the same parameters."""
+    fast = make_loss(obs_dim=3, hidden=(16, 16))
+    fallback = make_loss(obs_dim=3, hidden=(16, 16))
+    fallback.load_state_dict(fast.state_dict())
+    batch = collect(fast, torch.randn(300, 3))
+    fast.compute_advantage(batch)
+    kernel_calls = []
+
+    @functools.wraps(critic_fit._ADAM_KERNEL)
+    def counted_kernel(*args, **kwargs):
+        kernel_calls.append(1)
+        return counted_kernel.__wrapped__(*args, **kwargs)
+
+    monkeypatch.setattr(critic_fit, "_ADAM_KERNEL", counted_kernel)
+    fast_optimizer = make_critic_optimizer(fast)
+    fast_loss = fit_critic(fast, batch, fast_optimizer, 3, 64, torch.Generator().manual_seed(0)).loss
+    assert len(kernel_calls) == 3 * 5 - 1, (  # every step but the first, which creates Adam's state
+        f"torch {torch.__version__} changed torch.optim.adam.adam: the critic fit takes the slower "
+        "Optimizer.step path; update the keyword call in critic_fit._gradient_step_fn"
+    )
+
+    monkeypatch.setattr(critic_fit, "_ADAM_KERNEL", None if change == "missing" else _kernel_unlike_torchs(change))
+    fallback_optimizer = make_critic_optimizer(fallback)
+    fallback_loss = fit_critic(fallback, batch, fallback_optimizer, 3, 64, torch.Generator().manual_seed(0)).loss
+
+    assert fast_loss == pytest.approx(fallback_loss, rel=1e-6)
+    for fast_param, fallback_param in zip(fast.critic_parameters(), fallback.critic_parameters(), strict=True):
+        torch.testing.assert_close(fast_param, fallback_param, atol=1e-7, rtol=1e-6)
+    for fast_state, fallback_state in zip(fast_optimizer.state.values(), fallback_optimizer.state.values(),
+                                          strict=True):
+        for name in ("exp_avg", "exp_avg_sq", "step"):
+            torch.testing.assert_close(fast_state[name], fallback_state[name], atol=1e-7, rtol=1e-6)
+
+
+# ----------------------------------------------------------------------- (8) non-finite guards
+def optimizer_state_copy(optimizer):
+    return [{name: value.clone() for name, value in state.items()} for state in optimizer.state.values()]
+
+
+def assert_optimizer_state_equal(optimizer, copies):
+    assert len(optimizer.state) == len(copies)
+    for state, copy in zip(optimizer.state.values(), copies, strict=True):
+        assert state.keys() == copy.keys()
+        assert all(torch.equal(state[name], copy[name]) for name in state)
+
+
+def test_nan_value_target_skips_critic_fit_and_counts_consecutive_skips():
+    loss = make_loss(obs_dim=3, hidden=(16,))
+    updater = TRPOUpdater(loss, critic_epochs=2, critic_minibatch_size=64)
+    metrics = updater.update(collect(loss, torch.randn(4, 64, 3), done_every=16))  # Adam state now exists
+    assert metrics["train/critic_skipped"] == 0.0 and metrics["train/consecutive_skips"] == 0.0
+    critic_params = loss.critic_parameters()
+    actor_params = loss.actor_parameters()
+
+    def nan_reward(batch):
+        reward = torch.randn(*batch.shape, 1)
+        reward[0, 5] = float("nan")  # GAE carries it into value targets and advantages
+        return reward
+
+    for skips in (1, 2):
+        batch = collect(loss, torch.randn(4, 64, 3), reward_fn=nan_reward, done_every=16)
+        critic_before, actor_before = snapshot(critic_params), snapshot(actor_params)
+        state_before = optimizer_state_copy(updater.critic_optimizer)
+
+        metrics = updater.update(batch)
+
+        assert not torch.isfinite(batch["value_target"]).all()
+        assert metrics["train/critic_skipped"] == 1.0 and metrics["train/step_accepted"] == 0.0
+        assert metrics["train/consecutive_skips"] == skips and updater.consecutive_skips == skips
+        assert updater.skip_reasons == ["policy step: non-finite policy gradient",
+                                        "critic fit: non-finite value target"]
+        assert all(math.isfinite(value) for value in metrics.values()), metrics
+        assert all_equal(critic_params, critic_before) and all_equal(actor_params, actor_before)
+        assert_optimizer_state_equal(updater.critic_optimizer, state_before)
+
+    metrics = updater.update(collect(loss, torch.randn(4, 64, 3), done_every=16))
+
+    assert metrics["train/step_accepted"] == 1.0 and metrics["train/critic_skipped"] == 0.0
+    assert metrics["train/consecutive_skips"] == 0.0 and updater.consecutive_skips == 0
+    assert updater.skip_reasons == []
+
+
+@pytest.mark.parametrize("hand_written_backward", [True, False])
+def test_critic_fit_that_overflows_is_rolled_back(monkeypatch, hand_written_backward):
+    """Finite targets so large that the squared error overflows: caught at the end of the fit."""
+    if not hand_written_backward:
+        monkeypatch.setattr(critic_fit._PlainMLPRegression, "from_critic", classmethod(lambda cls, m: None))
+    loss = make_loss(obs_dim=3, hidden=(16,))
+    healthy = collect(loss, torch.randn(200, 3))
+    loss.compute_advantage(healthy)
+    overflowing = healthy.clone()
+    overflowing["value_target"] = torch.full_like(healthy["value_target"], 1e30)
+    params = loss.critic_parameters()
+    optimizer = make_critic_optimizer(loss)
+
+    before = snapshot(params)  # a fresh optimizer: the state the failed fit created is dropped
+    result = fit_critic(loss, overflowing, optimizer, 2, 64)
+    assert not result.fitted and "non-finite" in result.skip_reason and result.loss == 0.0
+    assert all_equal(params, before) and len(optimizer.state) == 0
+
+    assert fit_critic(loss, healthy, optimizer, 2, 64).fitted
+    before, state_before = snapshot(params), optimizer_state_copy(optimizer)
+    result = fit_critic(loss, overflowing, optimizer, 2, 64)
+    assert not result.fitted
+    assert all_equal(params, before)
+    assert_optimizer_state_equal(optimizer, state_before)
 
 
 @pytest.mark.parametrize(

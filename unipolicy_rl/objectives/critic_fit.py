@@ -1,22 +1,51 @@
 """Fitting the TRPO critic: Adam on the MSE to fixed value targets, over shuffled minibatches.
 
 The policy moves by the natural gradient alone (:mod:`unipolicy_rl.objectives.natural_gradient`);
-the critic is an ordinary regression, and this module keeps its many tiny steps cheap.
+the critic is an ordinary regression, and this module keeps its many tiny steps cheap. Like the
+policy step, a fit that meets a non-finite number is skipped and leaves the critic and its Adam
+state as they were: one NaN target would otherwise poison both for the rest of the run.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+import inspect
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torch.optim.adam import adam
 
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
-__all__ = ["fit_critic", "make_critic_optimizer"]
+__all__ = ["CriticFitResult", "fit_critic", "make_critic_optimizer"]
+
+# Private: ``torch.optim.adam.adam``, Adam's functional kernel (not re-exported by torch.optim).
+# Its positional parameters have grown and moved between torch releases, so the fast path calls
+# it with keywords only, after checking that its signature binds them (:func:`_adam_kernel_for`);
+# otherwise the fit steps the optimizer by its public ``step()``.
+_ADAM_KERNEL: Callable[..., None] | None = getattr(importlib.import_module("torch.optim.adam"), "adam", None)
+
+
+@dataclass(frozen=True)
+class CriticFitResult:
+    """What one critic fit did.
+
+    Attributes:
+        fitted: whether the critic parameters (and the optimizer state) changed.
+        skip_reason: ``None`` when fitted, otherwise why the fit was skipped.
+        loss: mean minibatch loss (``critic_coeff * MSE``) over the fit (0 when skipped).
+    """
+
+    fitted: bool
+    skip_reason: str | None
+    loss: float = 0.0
+
+    def as_metrics(self, prefix: str = "train/") -> dict[str, float]:
+        """``loss_critic`` and ``critic_skipped`` (1.0 when skipped; the reason is dropped)."""
+        return {prefix + "loss_critic": self.loss, prefix + "critic_skipped": float(not self.fitted)}
 
 
 def make_critic_optimizer(loss_module: TRPOLoss, lr: float = 1e-3) -> torch.optim.Adam:
@@ -39,13 +68,19 @@ def fit_critic(
     epochs: int = 10,
     minibatch_size: int = 128,
     generator: torch.Generator | None = None,
-) -> float:
+) -> CriticFitResult:
     """Regress the critic on ``batch``'s value target by Adam over shuffled minibatches.
 
     The value target must already be in ``batch`` (written by the value estimator before
     this fit, so every minibatch regresses on the same fixed targets). Each epoch reshuffles
-    the whole batch once and walks it in contiguous slices. Returns the mean minibatch loss
-    (``critic_coeff * MSE``) over the fit.
+    the whole batch once and walks it in contiguous slices. The result carries the mean
+    minibatch loss (``critic_coeff * MSE``) over the fit.
+
+    Skipped, with the critic parameters and the optimizer state left bit for bit as they
+    were, when a value target or critic input is non-finite (checked before any step), or
+    when the fit ends with a non-finite loss, parameter or optimizer state (a non-finite
+    gradient on the way always leaves one: Adam turns it into a NaN parameter or moment).
+    The end-of-fit check costs one pass over the parameters instead of a check per step.
 
     This loop runs about a thousand tiny steps per update, so per-step overhead, not
     arithmetic, sets its speed. Two fast paths, each checked against the plain path in
@@ -55,14 +90,18 @@ def fit_critic(
       :func:`unipolicy_rl.networks.make_critic` builds) gets its MSE gradient by a
       hand-written backward pass, on tensors, with no TensorDict or autograd bookkeeping;
       any other critic goes through :meth:`TRPOLoss.critic_loss` and autograd;
-    * a plain ``torch.optim.Adam`` is applied through ``torch.optim.adam.adam`` on the
-      optimizer's own state, skipping ``Optimizer.step``'s per-call bookkeeping; any other
-      optimizer is stepped normally.
+    * a plain ``torch.optim.Adam`` is applied through torch's private functional kernel on
+      the optimizer's own state, skipping ``Optimizer.step``'s per-call bookkeeping; any
+      other optimizer, or a torch whose kernel signature differs, is stepped normally.
     """
     flat = batch.reshape(-1)
     count = flat.numel()
     critic = loss_module.critic_network
     target = flat.get(loss_module.tensor_keys.value_target).detach()
+    if not _all_finite([target]):
+        return CriticFitResult(False, "non-finite value target")
+    if not _all_finite(flat.select(*critic.in_keys).values(True, True)):
+        return CriticFitResult(False, "non-finite critic input")
     coeff = float(loss_module.critic_coeff)
     device = target.device
     total = torch.zeros((), device=device)
@@ -75,6 +114,7 @@ def fit_critic(
         else:
             params = loss_module.critic_parameters()
             inputs = flat.select(*critic.in_keys)
+        restore = _snapshot(params, optimizer)
         apply_gradients = _gradient_step_fn(optimizer, params)
         for _ in range(epochs):
             order = torch.randperm(count, generator=generator, device=generator.device if generator else device).to(
@@ -94,7 +134,44 @@ def fit_critic(
                 apply_gradients(grads)
                 total += loss.detach()
                 steps += 1
-    return float(total / max(steps, 1))
+        if not _all_finite([total, *params, *_state_tensors(optimizer)]):
+            restore()
+            return CriticFitResult(False, "non-finite critic loss or gradient")
+    return CriticFitResult(True, None, float(total / max(steps, 1)))
+
+
+def _all_finite(tensors: Iterable[torch.Tensor]) -> bool:
+    """Whether every floating-point element of ``tensors`` is finite (others are skipped)."""
+    return all(bool(torch.isfinite(t).all()) for t in tensors if t.is_floating_point())
+
+
+def _state_tensors(optimizer: torch.optim.Optimizer) -> list[torch.Tensor]:
+    """Every tensor in the optimizer's per-parameter state (Adam: moments and step counts)."""
+    return [value for state in optimizer.state.values() for value in state.values() if torch.is_tensor(value)]
+
+
+def _snapshot(params: list[torch.Tensor], optimizer: torch.optim.Optimizer) -> Callable[[], None]:
+    """A ``restore()`` that puts ``params`` and ``optimizer``'s state back as they are now.
+
+    Parameters are copied back in place (the modules keep their tensors); the optimizer state
+    is restored by entry, and state the fit created (a fresh optimizer's first step) is dropped.
+    """
+    saved_params = [param.detach().clone() for param in params]
+    saved_state = {
+        param: {name: value.clone() if torch.is_tensor(value) else value for name, value in state.items()}
+        for param, state in optimizer.state.items()
+    }
+
+    def restore() -> None:
+        with torch.no_grad():
+            for param, saved in zip(params, saved_params, strict=True):
+                param.copy_(saved)
+        for param in list(optimizer.state):
+            if param not in saved_state:
+                del optimizer.state[param]
+        optimizer.state.update(saved_state)
+
+    return restore
 
 
 class _PlainMLPRegression:
@@ -170,15 +247,32 @@ class _PlainMLPRegression:
         return loss, grads
 
 
+def _adam_kernel_for(arguments: dict[str, object]) -> Callable[..., None] | None:
+    """torch's private Adam kernel if its signature binds ``arguments`` by keyword, else ``None``.
+
+    Binding fails on a keyword the kernel lacks (renamed), on a parameter it requires that
+    ``arguments`` lacks (newly added), and on positional-only parameters: in each case some
+    torch release changed the kernel, and the fit takes the public ``Optimizer.step`` instead.
+    """
+    if _ADAM_KERNEL is None:
+        return None
+    try:
+        inspect.signature(_ADAM_KERNEL).bind(**arguments)
+    except (TypeError, ValueError):
+        return None
+    return _ADAM_KERNEL
+
+
 def _gradient_step_fn(
     optimizer: torch.optim.Optimizer, params: list[torch.Tensor]
 ) -> Callable[[list[torch.Tensor]], None]:
     """``grads -> None`` applying one optimizer step with ``grads`` for ``params``.
 
-    For a plain ``torch.optim.Adam`` over exactly ``params`` this calls the public functional
-    kernel ``torch.optim.adam.adam`` on the optimizer's own state (so checkpoints and
-    learning-rate schedules keep working); the first step of a fresh optimizer goes through
-    ``optimizer.step()`` so that Adam creates its state itself.
+    For a plain ``torch.optim.Adam`` over exactly ``params``, and a torch whose private kernel
+    ``torch.optim.adam.adam`` takes the keywords used here (:func:`_adam_kernel_for`), this
+    calls that kernel on the optimizer's own state (so checkpoints and learning-rate schedules
+    keep working); the first step of a fresh optimizer goes through ``optimizer.step()`` so that
+    Adam creates its state itself. Otherwise every step is ``optimizer.step()``, the same update.
     """
 
     def optimizer_step(grads: list[torch.Tensor]) -> None:
@@ -200,33 +294,36 @@ def _gradient_step_fn(
     ):
         return optimizer_step
 
-    state_lists: tuple[list[torch.Tensor], ...] | None = None
+    kernel_arguments: dict[str, object] | None = None  # all but ``grads``, once Adam's state exists
+    adam: Callable[..., None] | None = None
 
     def functional_adam_step(grads: list[torch.Tensor]) -> None:
-        nonlocal state_lists
-        if state_lists is None:
+        nonlocal kernel_arguments, adam
+        if kernel_arguments is None:
             if any(param not in optimizer.state for param in params):
                 optimizer_step(grads)
                 return
             states = [optimizer.state[param] for param in params]
-            state_lists = tuple([state[name] for state in states] for name in ("exp_avg", "exp_avg_sq", "step"))
-        exp_avgs, exp_avg_sqs, state_steps = state_lists
-        adam(
-            params,
-            grads,
-            exp_avgs,
-            exp_avg_sqs,
-            [],
-            state_steps,
-            foreach=group["foreach"],
-            fused=group["fused"],
-            amsgrad=False,
-            beta1=group["betas"][0],
-            beta2=group["betas"][1],
-            lr=group["lr"],
-            weight_decay=group["weight_decay"],
-            eps=group["eps"],
-            maximize=False,
-        )
+            kernel_arguments = {
+                "params": params,
+                "exp_avgs": [state["exp_avg"] for state in states],
+                "exp_avg_sqs": [state["exp_avg_sq"] for state in states],
+                "max_exp_avg_sqs": [],
+                "state_steps": [state["step"] for state in states],
+                "foreach": group["foreach"],
+                "fused": group["fused"],
+                "amsgrad": False,
+                "beta1": group["betas"][0],
+                "beta2": group["betas"][1],
+                "lr": group["lr"],
+                "weight_decay": group["weight_decay"],
+                "eps": group["eps"],
+                "maximize": False,
+            }
+            adam = _adam_kernel_for({"grads": grads, **kernel_arguments})
+        if adam is None:
+            optimizer_step(grads)
+        else:
+            adam(grads=grads, **kernel_arguments)
 
     return functional_adam_step

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 
-from unipolicy_rl.objectives.critic_fit import fit_critic, make_critic_optimizer
+from unipolicy_rl.objectives.critic_fit import CriticFitResult, fit_critic, make_critic_optimizer
 from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
@@ -17,8 +19,17 @@ class TRPOUpdater:
 
     Keeps the critic's Adam state across updates. ``update(batch)`` takes a collected batch
     shaped ``[*envs, time]`` (time last, as TorchRL's GAE expects) and returns flat float
-    metrics named ``train/...``; the last :class:`TRPOStepResult` (with its skip reason) is
-    kept in ``last_step``.
+    metrics named ``train/...`` (the same names on every call, so they can be rows of a
+    table); the last :class:`TRPOStepResult` and :class:`CriticFitResult`, with their skip
+    reasons, are kept in ``last_step`` and ``last_critic_fit``.
+
+    ``consecutive_skips`` (also the metric ``train/consecutive_skips``) counts the updates in
+    a row, up to and including the last, in which the policy step was not accepted (any
+    ``skip_reason``, a failed line search included) or the critic fit was skipped; an update
+    with both an accepted step and a fitted critic resets it to 0. Each skip leaves the
+    parameters untouched, so a run whose count keeps growing has stopped learning (e.g. its
+    returns went non-finite): a training loop can stop it past a limit, with
+    :attr:`skip_reasons` for the message.
 
     The policy step takes its settings from ``trust_region`` (default :class:`TrustRegion`); the critic defaults (Adam
     ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib.
@@ -41,6 +52,18 @@ class TRPOUpdater:
         self.critic_minibatch_size = critic_minibatch_size
         self.generator = generator
         self.last_step: TRPOStepResult | None = None
+        self.last_critic_fit: CriticFitResult | None = None
+        self.consecutive_skips = 0
+
+    @property
+    def skip_reasons(self) -> list[str]:
+        """Why the last update skipped its policy step and/or critic fit (empty if neither)."""
+        reasons = []
+        if self.last_step is not None and not self.last_step.accepted:
+            reasons.append(f"policy step: {self.last_step.skip_reason}")
+        if self.last_critic_fit is not None and not self.last_critic_fit.fitted:
+            reasons.append(f"critic fit: {self.last_critic_fit.skip_reason}")
+        return reasons
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """Update policy and critic on ``batch`` (advantage keys are written into it)."""
@@ -54,7 +77,7 @@ class TRPOUpdater:
         metrics["train/explained_variance"] = _explained_variance(
             flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
         )
-        metrics["train/loss_critic"] = fit_critic(
+        critic_fit = fit_critic(
             loss,
             flat,
             self.critic_optimizer,
@@ -62,18 +85,24 @@ class TRPOUpdater:
             self.critic_minibatch_size,
             self.generator,
         )
+        self.last_critic_fit = critic_fit
+        metrics.update(critic_fit.as_metrics("train/"))
+        self.consecutive_skips = 0 if step.accepted and critic_fit.fitted else self.consecutive_skips + 1
+        metrics["train/consecutive_skips"] = float(self.consecutive_skips)
         return metrics
 
 
 def _explained_variance(prediction: torch.Tensor, target: torch.Tensor) -> float:
     """``1 - Var(target - prediction) / Var(target)`` of the critic before its fit.
 
-    0.0 where it is undefined (fewer than two samples, or a constant target), so the metrics
-    stay finite for loggers and NaN checks.
+    0.0 where it is undefined (fewer than two samples, a constant target, or a non-finite
+    value, which the critic fit reports by skipping), so the metrics stay finite for loggers
+    and NaN checks.
     """
     target = target.reshape(-1)
     variance = target.var(correction=0)
     if target.numel() < 2 or variance == 0:
         return 0.0
     residual = target - prediction.reshape(-1)
-    return float(1.0 - residual.var(correction=0) / variance)
+    explained = float(1.0 - residual.var(correction=0) / variance)
+    return explained if math.isfinite(explained) else 0.0
