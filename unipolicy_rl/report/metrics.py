@@ -1,0 +1,110 @@
+"""The metrics.csv columns the report reads, and the two axes it compares sources on.
+
+Model-free and model-based training are compared per *real* env step and per second of wall
+time, so both axes exist for every run: logged by newer runs (``real_env_steps``,
+``time/elapsed``), derived here for older ones. Returns are real ones only: a model-based
+run's ``imagined/`` columns (and its rows that log no real episode) are never read as returns.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from unipolicy_rl.evaluation import WALKING_DISPLACEMENT
+from unipolicy_rl.report.runs import Run
+
+REWARD = "train/episode_reward"  # real episodes' mean return
+DISPLACEMENT = "train/forward_displacement"  # real episodes' mean forward displacement (m)
+REAL_STEPS = "real_env_steps"  # cumulative real simulator steps used for training
+ELAPSED = "time/elapsed"  # wall seconds since the run started
+EPOCH_TIMES = ("time/collect", "time/update")  # per-epoch seconds, what older runs logged
+# Periodic real-env grid evaluation; NaN on rows without one.
+GRID_MEAN = "eval/grid_mean_displacement"
+GRID_MIN = "eval/grid_min_displacement"
+GRID_WALKING = "eval/walking_designs"
+IMAGINED_PREFIX = "imagined/"
+# Surrogate accuracy figures a model-based run logs (fit error and the like); the summary
+# shows each one's last value.
+SURROGATE_PREFIX = "model/"
+
+
+@dataclass(frozen=True)
+class Series:
+    """One run's values of one quantity against both axes."""
+
+    steps: np.ndarray  # real env steps
+    seconds: np.ndarray  # wall time
+    values: np.ndarray
+
+    def against(self, axis: str) -> tuple[np.ndarray, np.ndarray]:
+        return (self.steps if axis == "steps" else self.seconds), self.values
+
+
+def column(run: Run, name: str) -> np.ndarray:
+    return np.array([row.get(name, math.nan) for row in run.rows], dtype=float)
+
+
+def real_env_steps(run: Run) -> np.ndarray:
+    """Per row; a logged column is carried forward over rows that leave it blank. Without
+    the column, a real source's epoch trains on ``episodes_per_epoch * episode_length`` steps."""
+    if REAL_STEPS in run.columns:
+        return _carry_forward(column(run, REAL_STEPS))
+    per_epoch = run.config["episodes_per_epoch"] * run.config["robot"]["episode_length"]
+    return column(run, "epoch") * per_epoch
+
+
+def elapsed_seconds(run: Run) -> np.ndarray:
+    if ELAPSED in run.columns:
+        return _carry_forward(column(run, ELAPSED))
+    parts = [np.nan_to_num(column(run, name)) for name in EPOCH_TIMES if name in run.columns]
+    return np.cumsum(np.sum(parts, axis=0)) if parts else np.full(len(run.rows), math.nan)
+
+
+def steps_are_derived(run: Run) -> bool:
+    """True when real env steps come from the epoch count, which only holds for real sources."""
+    return REAL_STEPS not in run.columns
+
+
+def series(run: Run, name: str) -> Series | None:
+    """``name`` on the rows that log it, against both axes; None when no row does."""
+    if name not in run.columns or not run.rows:
+        return None
+    values = column(run, name)
+    logged = np.isfinite(values)
+    if not logged.any():
+        return None
+    return Series(real_env_steps(run)[logged], elapsed_seconds(run)[logged], values[logged])
+
+
+def first_walking(run: Run) -> tuple[float, float] | None:
+    """(real env steps, wall seconds) at the first epoch whose real training episodes walk
+    at least :data:`WALKING_DISPLACEMENT` on average; None if none did."""
+    displacement = series(run, DISPLACEMENT)
+    if displacement is None:
+        return None
+    walking = np.flatnonzero(displacement.values >= WALKING_DISPLACEMENT)
+    if not len(walking):
+        return None
+    return float(displacement.steps[walking[0]]), float(displacement.seconds[walking[0]])
+
+
+def surrogate_figures(run: Run) -> dict[str, float]:
+    """The last logged value of each surrogate-accuracy column."""
+    figures = {}
+    for name in run.columns:
+        if name.startswith(SURROGATE_PREFIX):
+            logged = series(run, name)
+            if logged is not None:
+                figures[name] = float(logged.values[-1])
+    return figures
+
+
+def _carry_forward(values: np.ndarray) -> np.ndarray:
+    filled = values.copy()
+    for i in range(1, len(filled)):
+        if not math.isfinite(filled[i]):
+            filled[i] = filled[i - 1]
+    return filled
