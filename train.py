@@ -5,94 +5,103 @@
     python train.py -m source=de,se seed=0,1,2
     python train.py resume=outputs/se/seed0/<run>/checkpoint.pt
 
-Flat loop, top to bottom: collect one epoch of whole episodes, one TRPO update, log,
-checkpoint. Ends with a saved policy, a design-grid evaluation and a summary.
+Flat loop, top to bottom, over the collector's labelled batches: a real epoch of whole
+episodes (SE/DE: one TRPO update on it), or, for a model-based source, a real epoch followed
+by imagined batches (one TRPO update each); log; checkpoint after every real epoch. Ends with
+a saved policy, a design-grid evaluation and a summary.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import signal
 import time
 from pathlib import Path
 
 import hydra
-import numpy as np
 import torch
 import tqdm
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from torchrl.collectors import Collector
 
-from unipolicy_rl.checkpoint import load_checkpoint, save_checkpoint
-from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution
+from unipolicy_rl.checkpoint import (
+    collector_state,
+    load_checkpoint,
+    restore_training_state,
+    save_checkpoint,
+    training_state,
+)
+from unipolicy_rl.collectors import is_imagined
+from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.evaluation import evaluate_on_designs, plot_heatmaps, summarise, write_csv
 from unipolicy_rl.evaluation.plots import plot_training_curve
 from unipolicy_rl.factories import (
     env_kwargs,
     make_actor_critic,
     make_collecting_policy,
-    make_collector,
     make_observation_norm,
+    make_training_collector,
+    make_trpo_updater,
+    probe_dimensions,
 )
-from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
 
 
-def epoch_seed(seed: int, epoch: int) -> int:
-    """The seed a run restarts its designs and action noise from at ``epoch``."""
-    return int(np.random.SeedSequence([seed, epoch]).generate_state(1)[0])
-
-
-def restart_randomness(collector, seed: int, epoch: int) -> None:
-    """Reseeds every env's designs and every action sampler and resets every robot, from
-    ``epoch_seed``: each epoch is then a function of the weights and statistics that start
-    it, so a run resumed from any checkpoint continues exactly as the uninterrupted run.
-    (The multi-process collector seeds each worker's torch and resets its robots itself.)
-    """
-    collector.set_seed(epoch_seed(seed, epoch))
-    if isinstance(collector, Collector):
-        torch.manual_seed(epoch_seed(seed, epoch))
-        collector.reset()
-
-
 def episode_metrics(batch, control_period: float, episode_length: int) -> dict[str, float]:
-    """Mean episode reward, forward displacement (m) and speed (m/s) of the episodes that ended."""
+    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended."""
     done = batch["next", "done"].squeeze(-1)
     displacement = batch["next", "observation"][..., 0][done]
     return {
         "train/episode_reward": batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
+        "train/reward_per_step": batch["next", "reward"].mean().item(),
         "train/forward_displacement": displacement.mean().item(),
         "train/forward_speed": displacement.mean().item() / (episode_length * control_period),
         "train/physics_faults": batch["next", "physics_fault"].sum().item(),
     }
 
 
-def append_metrics_row(path: Path, epoch: int, metrics: dict[str, float]) -> None:
-    """One row per epoch in ``metrics.csv`` (appended, so a resumed run continues the file)."""
-    row = {"epoch": epoch, **metrics}
-    new = not path.is_file()
-    with path.open("a", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=list(row))
+class MetricsCSV:
+    """``metrics.csv``: one row per training batch, appended (a resumed run continues the file).
+
+    Real and imagined batches log different figures, so a row may bring a column the file
+    has not had yet: the file is then rewritten once with the wider header (cells a row
+    lacks stay empty).
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.columns: list[str] = []
+        if path.is_file():
+            with path.open(newline="") as file:
+                self.columns = next(csv.reader(file), [])
+
+    def append(self, row: dict[str, float]) -> None:
+        new = [key for key in row if key not in self.columns]
         if new:
-            writer.writeheader()
-        writer.writerow(row)
+            rows = []
+            if self.path.is_file():
+                with self.path.open(newline="") as file:
+                    rows = list(csv.DictReader(file))
+            self.columns += new
+            with self.path.open("w", newline="") as file:
+                writer = csv.DictWriter(file, fieldnames=self.columns)
+                writer.writeheader()
+                writer.writerows(rows)
+        with self.path.open("a", newline="") as file:
+            csv.DictWriter(file, fieldnames=self.columns).writerow(row)
 
 
-def training_state(epoch, actor, critic, statistics, updater, cfg, observation_dim, action_dim) -> dict:
+def grid_metrics(policy, cfg, designs, prefix: str = "eval/") -> dict[str, float]:
+    """The deterministic policy on the evaluation grid in the real env: how far the grid walks."""
+    results = evaluate_on_designs(policy, env_kwargs(cfg), designs, episodes_per_design=1, seed=cfg.seed)
+    summary = summarise(results)
     return {
-        "epoch": epoch,
-        "config": OmegaConf.to_container(cfg, resolve=True),
-        "observation_dim": observation_dim,
-        "action_dim": action_dim,
-        "actor": actor.state_dict(),
-        "critic": critic.state_dict(),
-        "observation_statistics": statistics.state_dict(),
-        "observation_loc": statistics.loc,
-        "observation_scale": statistics.scale,
-        "critic_optimizer": updater.critic_optimizer.state_dict(),
-        "critic_generator": updater.generator.get_state(),
+        f"{prefix}grid_mean_displacement": summary["mean_forward_displacement"],
+        f"{prefix}grid_min_displacement": summary["min_forward_displacement"],
+        f"{prefix}walking_designs": float(summary["walking_designs"]),
+        f"{prefix}grid_mean_reward": summary["mean_episode_reward"],
     }
 
 
@@ -110,6 +119,14 @@ def evaluate_final(cfg, checkpoint_path: Path, run_dir: Path, metrics_csv: Path 
     if metrics_csv is not None and metrics_csv.is_file():
         plot_training_curve(metrics_csv, out / "training_curve.png")
     return summarise(results)
+
+
+@contextlib.contextmanager
+def shutting_down(collector):
+    try:
+        yield collector
+    finally:
+        collector.shutdown()
 
 
 class StopAtEpochEnd:
@@ -144,83 +161,91 @@ def main(cfg: DictConfig) -> dict:
     torch.manual_seed(cfg.seed)  # network initialisation
     run_dir = Path(HydraConfig.get().runtime.output_dir)
 
-    probe = BatchedWalkerEnv(1, **env_kwargs(cfg))
-    observation_dim = probe.observation_spec["observation"].shape[-1]
-    action_dim = probe.action_spec.shape[-1]
-    probe.close()
+    observation_dim, action_dim = probe_dimensions(cfg)
     actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
     normalizer = make_observation_norm(observation_dim)
     statistics = ObservationStatistics(observation_dim)
-    algo = cfg.algo
-    loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
-    loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
-    trust_region = TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
-                               backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
-    updater = TRPOUpdater(
-        loss, trust_region=trust_region, critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
-        critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
-    )
-    episode_length = cfg.robot.episode_length
-    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
-
-    start_epoch = 0
-    if cfg.resume:
-        state = load_checkpoint(cfg.resume)
-        actor.load_state_dict(state["actor"])
-        critic.load_state_dict(state["critic"])
-        statistics.load_state_dict(state["observation_statistics"])
-        updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        updater.generator.set_state(state["critic_generator"])
-        start_epoch = state["epoch"]
-        print(f"resumed from {cfg.resume} at epoch {start_epoch}")
+    updater = make_trpo_updater(cfg, actor, critic)
+    state = load_checkpoint(cfg.resume) if cfg.resume else None
+    if state is not None:
+        restore_training_state(state, actor=actor, critic=critic, statistics=statistics, updater=updater)
     statistics.copy_to(normalizer)
-    collector = make_collector(cfg, make_collecting_policy(normalizer, actor), cfg.epochs - start_epoch)
+    policy = make_collecting_policy(normalizer, actor)
+    collector = make_training_collector(cfg, policy, action_dim)
+    if state is not None:
+        collector.load_state_dict(collector_state(state))
+        print(f"resumed from {cfg.resume} at epoch {state['epoch']}")
+    elapsed_before = state.get("elapsed", 0.0) if state is not None else 0.0
 
     logger = instantiate(cfg.logger)
     checkpoint_path = run_dir / "checkpoint.pt"
-    metrics_csv = run_dir / "metrics.csv"
+    metrics_csv = MetricsCSV(run_dir / "metrics.csv")
+    grid = cfg.evaluation
+    designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+    episode_length = cfg.robot.episode_length
+    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
+    config = OmegaConf.to_container(cfg, resolve=True)
+    started = time.perf_counter()
 
-    def checkpoint(epoch: int) -> Path:
-        state = training_state(epoch, actor, critic, statistics, updater, cfg, observation_dim, action_dim)
+    def checkpoint() -> Path:
+        state = training_state(epoch=collector.epoch, config=config, observation_dim=observation_dim,
+                               action_dim=action_dim, actor=actor, critic=critic, statistics=statistics,
+                               updater=updater, collector=collector,
+                               elapsed=elapsed_before + time.perf_counter() - started)
         return save_checkpoint(checkpoint_path, state)
 
-    epoch = start_epoch
-    batches = iter(collector)
-    progress = tqdm.tqdm(range(start_epoch, cfg.epochs), initial=start_epoch, total=cfg.epochs,
-                         disable=not cfg.progress_bar, desc=f"{cfg.source.name}-TRPO")
-    with StopAtEpochEnd() as stop:
-        for epoch in progress:
-            started = time.perf_counter()
-            restart_randomness(collector, cfg.seed, epoch)
-            batch = next(batches)
+    iteration = 0
+    progress = tqdm.tqdm(total=cfg.epochs, initial=collector.epoch, disable=not cfg.progress_bar,
+                         desc=f"{cfg.source.name}-TRPO")
+    postfix: dict[str, str] = {}
+    # A failure anywhere in the loop still shuts the collector's worker processes down (else
+    # the interpreter waits for them forever on exit).
+    with StopAtEpochEnd() as stop, shutting_down(collector):
+        tick = time.perf_counter()
+        for batch in collector:
+            # ---- Data: real episodes (which also refresh the observation statistics) or imagined ones
             collected = time.perf_counter()
-            normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
-            metrics = episode_metrics(batch, control_period, episode_length)
-            metrics.update(updater.update(batch))
-            # The next epoch's policy normalises with statistics that include this epoch.
-            statistics.update(batch["observation"])
-            statistics.copy_to(normalizer)
+            imagined = is_imagined(batch)
+            metrics = {"imagined": float(imagined)}
+            if not imagined:
+                metrics.update(episode_metrics(batch, control_period, episode_length))
+            # ---- Policy training
+            if imagined or collector.trains_policy_on_real:
+                normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
+                metrics.update(updater.update(batch))
+            if not imagined:
+                # The next epoch's policy normalises with statistics that include this epoch.
+                statistics.update(batch["observation"])
+                statistics.copy_to(normalizer)
             collector.update_policy_weights_()
-            metrics["time/collect"] = collected - started
+            metrics.update(collector.metrics())
+            metrics["time/collect"] = collected - tick
             metrics["time/update"] = time.perf_counter() - collected
+            epoch = collector.epoch
+            if not imagined and grid.every and epoch % grid.every == 0:
+                metrics.update(grid_metrics(policy, cfg, designs))
+            metrics["time/elapsed"] = elapsed_before + time.perf_counter() - started
+            iteration += 1
             for name, value in metrics.items():
-                logger.log_scalar(name, value, step=epoch + 1)
-            append_metrics_row(metrics_csv, epoch + 1, metrics)
-            progress.set_postfix(reward=f"{metrics['train/episode_reward']:.1f}",
-                                 metres=f"{metrics['train/forward_displacement']:.2f}",
-                                 kl=f"{metrics['train/kl']:.4f}")
-            if (epoch + 1) % cfg.checkpoint_every == 0 or stop.requested:
-                checkpoint(epoch + 1)
+                logger.log_scalar(name, value, step=iteration)
+            metrics_csv.append({"epoch": epoch, **metrics})
+            postfix.update(_progress_figures(metrics))
+            progress.set_postfix(postfix, refresh=False)
+            tick = time.perf_counter()
+            if imagined:
+                continue
+            # ---- Checkpoint (after every real epoch, where a run can resume exactly)
+            progress.update(1)
+            if epoch % cfg.checkpoint_every == 0 or stop.requested:
+                checkpoint()
             if stop.requested:
                 progress.close()
-                collector.shutdown()
-                print(f"stopped: saved epoch {epoch + 1} to {checkpoint_path}; continue with resume={checkpoint_path}")
-                return {"epoch": epoch + 1, "checkpoint": str(checkpoint_path)}
-    epoch = cfg.epochs
-    path = checkpoint(epoch)
-    collector.shutdown()
+                print(f"stopped: saved epoch {epoch} to {checkpoint_path}; continue with resume={checkpoint_path}")
+                return {"epoch": epoch, "checkpoint": str(checkpoint_path)}
+    progress.close()
+    path = checkpoint()
 
-    summary = evaluate_final(cfg, path, run_dir, metrics_csv)
+    summary = evaluate_final(cfg, path, run_dir, metrics_csv.path)
     print(f"saved policy: {path}")
     print(
         f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}: mean forward displacement "
@@ -228,7 +253,16 @@ def main(cfg: DictConfig) -> dict:
         f"mean episode reward {summary['mean_episode_reward']:.1f}, "
         f"{summary['walking_designs']}/{summary['designs']} designs walk >= 1 m"
     )
-    return {"epoch": epoch, "checkpoint": str(path), **summary}
+    return {"epoch": collector.epoch, "checkpoint": str(path), **summary}
+
+
+def _progress_figures(metrics: dict[str, float]) -> dict[str, str]:
+    """What the progress bar shows: real steps, real and imagined reward, model fit, grid walk."""
+    shown = {"real_env_steps": ("steps", "{:.0f}"), "train/episode_reward": ("reward", "{:.1f}"),
+             "train/forward_displacement": ("metres", "{:.2f}"), "imagined/reward_per_step": ("imag_r", "{:.2f}"),
+             "model/validation_mse": ("model_mse", "{:.3f}"), "eval/grid_min_displacement": ("grid_min", "{:.2f}"),
+             "train/kl": ("kl", "{:.4f}")}
+    return {label: fmt.format(metrics[key]) for key, (label, fmt) in shown.items() if key in metrics}
 
 
 if __name__ == "__main__":

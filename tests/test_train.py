@@ -95,7 +95,7 @@ def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
 
 
 def test_checkpoints_are_written_atomically(tmp_path, monkeypatch):
-    path = save_checkpoint(tmp_path / "checkpoint.pt", {"epoch": 1})
+    path = save_checkpoint(tmp_path / "checkpoint.pt", {"epoch": 1, "actor": {}, "config": {}})
 
     def exploding_save(*args, **kwargs):
         raise KeyboardInterrupt
@@ -110,3 +110,76 @@ def test_checkpoints_are_written_atomically(tmp_path, monkeypatch):
 def test_missing_checkpoint_names_the_path(tmp_path):
     with pytest.raises(FileNotFoundError, match="nowhere.pt"):
         load_checkpoint(tmp_path / "nowhere.pt")
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"not a checkpoint at all", "is not a readable checkpoint"),
+        ("torch", "is not a unipolicy_rl checkpoint"),
+        ("newer", "checkpoint format 99, newer"),
+    ],
+)
+def test_a_file_that_is_not_our_checkpoint_is_one_clear_error(tmp_path, content, match):
+    path = tmp_path / "bad.pt"
+    if content == "torch":
+        torch.save({"weights": torch.zeros(2)}, path)
+    elif content == "newer":
+        torch.save({"format": 99, "actor": {}, "config": {}}, path)
+    else:
+        path.write_bytes(content)
+    with pytest.raises(ValueError, match=match) as error:
+        load_checkpoint(path)
+    assert "bad.pt" in str(error.value)
+
+
+MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every=1", "world_model.imagination.steps_per_batch=60",
+            "world_model.imagination.horizon.start=3", "world_model.imagination.horizon.end=5",
+            "world_model.imagination.horizon.first_epoch=1",
+            "world_model.imagination.horizon.last_epoch=3", "world_model.model.hidden=[16]",
+            "world_model.model.members=3", "world_model.model.elites=2", "world_model.trainer.max_epochs=2",
+            "world_model.stopping.max_updates=4", "world_model.stopping.check_every=2",
+            "world_model.stopping.check_starts=4", "world_model.stopping.check_horizon=3"]
+
+
+def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp_path):
+    straight = run_train(*MOE_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
+    assert straight.returncode == 0, straight.stderr
+    first = run_train(*MOE_TINY, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
+    assert first.returncode == 0, first.stderr
+    resumed = run_train(*MOE_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    assert resumed.returncode == 0, resumed.stderr
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    assert a["epoch"] == b["epoch"] == 3
+    for name in ("actor", "critic"):
+        for key, value in a[name].items():
+            assert torch.equal(value, b[name][key]), f"{name}.{key} differs after resume"
+    for key, value in a["collector"]["model"].items():
+        assert torch.equal(value, b["collector"]["model"][key]), f"world model {key} differs after resume"
+    assert a["collector"]["real"] == b["collector"]["real"] == {"epoch": 3, "real_env_steps": 60}
+    with (tmp_path / "straight" / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    real = [row for row in rows if row["imagined"] == "0.0"]
+    imagined = [row for row in rows if row["imagined"] == "1.0"]
+    assert [row["real_env_steps"] for row in real] == ["20.0", "40.0", "60.0"]
+    assert real[0]["train/episode_reward"] and not imagined[0]["train/episode_reward"]
+    assert imagined[0]["imagined/reward_per_step"] and imagined[0]["model/validation_mse"]
+    assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every=1
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ("world_model=nope", "nope"),
+        ("world_model.model.members=0", "members must be a positive integer, got 0"),
+        ("world_model.imagination.horizon.start=0", "horizon.start must be an integer >= 1, got 0"),
+        ("world_model.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
+    ],
+)
+def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):
+    result = run_train(*MOE_TINY, "epochs=1", override, f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0
+    assert match in result.stderr
+    assert not (tmp_path / "metrics.csv").exists()

@@ -1,8 +1,10 @@
 """Checkpoints: written atomically, resumable, and loadable as a policy in one call.
 
 A checkpoint holds everything a run needs to continue bit-for-bit (weights, critic
-optimiser, observation statistics, the critic's minibatch RNG, epoch) and its resolved config, so
-``load_policy(path)`` can rebuild the policy without any other file.
+optimiser, observation statistics, the critic's minibatch RNG, the collector's position
+and, for a model-based run, its world model and replay buffer) and its resolved config, so
+``load_policy(path)`` can rebuild the policy without any other file. Its layout is defined
+once, by :func:`training_state` and :func:`restore_training_state`.
 """
 
 from __future__ import annotations
@@ -45,11 +47,64 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     return path
 
 
+# 1: weights, statistics, critic optimiser and epoch; 2: adds the collector's state.
+CHECKPOINT_FORMAT = 2
+
+
 def load_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {str(path)!r}")
-    return torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # pickle, zip and torch errors alike: the file is not ours or is cut short
+        raise ValueError(f"{str(path)!r} is not a readable checkpoint ({type(err).__name__}: {err})") from None
+    if not isinstance(state, dict) or "actor" not in state or "config" not in state:
+        raise ValueError(f"{str(path)!r} is not a unipolicy_rl checkpoint (no policy weights and config in it)")
+    if state.get("format", 1) > CHECKPOINT_FORMAT:
+        raise ValueError(f"{str(path)!r} has checkpoint format {state['format']}, newer than this version's "
+                         f"{CHECKPOINT_FORMAT}: update unipolicy_rl to read it")
+    return state
+
+
+def training_state(*, epoch: int, config: dict, observation_dim: int, action_dim: int, actor, critic, statistics,
+                   updater, collector, elapsed: float) -> dict:
+    """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "epoch": epoch,
+        "elapsed": elapsed,
+        "config": config,
+        "observation_dim": observation_dim,
+        "action_dim": action_dim,
+        "actor": actor.state_dict(),
+        "critic": critic.state_dict(),
+        "observation_statistics": statistics.state_dict(),
+        "observation_loc": statistics.loc,
+        "observation_scale": statistics.scale,
+        "critic_optimizer": updater.critic_optimizer.state_dict(),
+        "critic_generator": updater.generator.get_state(),
+        "collector": collector.state_dict(),
+    }
+
+
+def restore_training_state(state: dict, *, actor, critic, statistics, updater) -> None:
+    """Loads what :func:`training_state` saved into the learner's parts (the collector loads
+    ``state["collector"]`` itself, see :func:`collector_state`)."""
+    actor.load_state_dict(state["actor"])
+    critic.load_state_dict(state["critic"])
+    statistics.load_state_dict(state["observation_statistics"])
+    updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
+    updater.generator.set_state(state["critic_generator"])
+
+
+def collector_state(state: dict) -> dict:
+    """The collector's saved state; a format-1 checkpoint (real data only) had just its epoch."""
+    if "collector" in state:
+        return state["collector"]
+    config = state["config"]
+    frames = config["episodes_per_epoch"] * config["robot"]["episode_length"]
+    return {"epoch": state["epoch"], "real_env_steps": state["epoch"] * frames}
 
 
 @dataclass

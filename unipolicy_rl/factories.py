@@ -12,14 +12,16 @@ import signal
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.transforms import ObservationNorm
 
+from unipolicy_rl.collectors import ModelBasedCollector, RealEpochCollector, truncate_last_step
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.networks import make_actor, make_critic
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
+from unipolicy_rl.world_models import DynamicsModel, StateLayout
 
 NORMALIZED_OBSERVATION = "observation_norm"
 
@@ -67,7 +69,8 @@ def make_observation_norm(observation_dim: int, loc: torch.Tensor | None = None,
                            out_keys=[NORMALIZED_OBSERVATION])
 
 
-def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int) -> Collector | MultiSyncCollector:
+def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
+                   full_state: bool = False) -> Collector | MultiSyncCollector:
     """One epoch (``episodes_per_epoch`` robots x ``episode_length`` steps) per iteration.
 
     ``workers`` processes each step their share of the robots *and* run the policy on them
@@ -79,25 +82,19 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int) -
     the envs themselves set no time limit: a limit would make the collector rebuild every
     robot at the end of an epoch only for that reset to rebuild them again. A physics fault
     still ends an episode early, and that robot restarts at once.
+
+    ``full_state`` adds the robots' full state (``state``) to every step, for a world model.
     """
     frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
-    kwargs = {**env_kwargs(cfg), "episode_length": None}
+    kwargs = {**env_kwargs(cfg), "episode_length": None, "full_state": full_state}
+    # The policy needs no env transform (its normaliser is inside it): say so, which also
+    # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
     common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
-              "postproc": truncate_last_step}
+              "postproc": truncate_last_step, "auto_register_policy_transforms": False}
     if cfg.workers == 1:
         return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
     make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
     return MultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
-
-
-def truncate_last_step(batch: TensorDictBase) -> TensorDictBase:
-    """Ends every episode at the batch's last step (truncated, not terminated), as the time
-    limit would. (The collector's own ``set_truncated`` misses reused worker buffers.)"""
-    for key in ("truncated", "done"):
-        flags = batch.get(("next", key))
-        flags[..., -1, :] = True
-        batch.set(("next", key), flags)
-    return batch
 
 
 def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleBase) -> TensorDictSequential:
@@ -122,3 +119,67 @@ def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
 
 def config_from_dict(config: dict) -> DictConfig:
     return OmegaConf.create(config)
+
+
+SOURCE_KINDS = ("real", "model")
+
+
+def make_training_collector(cfg: DictConfig, policy: TensorDictModuleBase, action_dim: int):
+    """The collector ``source.kind`` asks for: real epochs, or real epochs alternating with
+    imagined batches from the configured world model (``source.kind: model``)."""
+    kind = cfg.source.kind
+    if kind not in SOURCE_KINDS:
+        raise ValueError(f"source.kind must be one of {SOURCE_KINDS}, got {kind!r}")
+    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
+    model_based = kind == "model"
+    real = RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=model_based), cfg.seed, cfg.epochs,
+                              frames_per_batch)
+    if not model_based:
+        return real
+    world_model = cfg.world_model
+    reference_env = BatchedWalkerEnv(1, **env_kwargs(cfg), full_state=True)
+    reference_env.close()  # only its specs are read
+    return ModelBasedCollector(
+        real,
+        make_dynamics_model(cfg, action_dim),
+        instantiate(world_model.trainer),
+        policy,
+        reference_env,
+        instantiate(cfg.robot.reward),
+        instantiate(world_model.imagination),
+        instantiate(world_model.stopping),
+        cfg.seed,
+        cfg.robot.episode_length,
+    )
+
+
+def make_dynamics_model(cfg: DictConfig, action_dim: int) -> DynamicsModel:
+    """The world model's dynamics (``world_model.model``), sized for the robot and observation."""
+    if cfg.get("world_model") is None:
+        raise ValueError("a model-based source needs a world_model config (e.g. world_model=moe)")
+    robot = cfg.robot
+    layout = StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
+                                 cfg.world_model.model_state)
+    # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
+    return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
+
+
+def make_trpo_updater(cfg: DictConfig, actor, critic) -> TRPOUpdater:
+    """TRPO loss (GAE) and its update, from ``algo``."""
+    algo = cfg.algo
+    loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
+    loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
+    trust_region = TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
+                               backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
+    return TRPOUpdater(
+        loss, trust_region=trust_region, critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
+        critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
+    )
+
+
+def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:
+    """Observation and action sizes of the configured robot (one robot built and closed)."""
+    probe = BatchedWalkerEnv(1, **env_kwargs(cfg))
+    dims = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    probe.close()
+    return dims

@@ -18,9 +18,9 @@ from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
-__all__ = ["make_actor", "make_critic", "make_mlp"]
+__all__ = ["ACTIVATIONS", "make_actor", "make_critic", "make_mlp"]
 
-_ACTIVATIONS: dict[str, type[nn.Module]] = {
+ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
     "relu": nn.ReLU,
     "elu": nn.ELU,
@@ -43,9 +43,9 @@ def make_mlp(
     An empty ``hidden_sizes`` gives a single linear layer (a linear policy).
     """
     try:
-        activation_class = _ACTIVATIONS[activation]
+        activation_class = ACTIVATIONS[activation]
     except KeyError as err:
-        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(_ACTIVATIONS)}") from err
+        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
     layers: list[nn.Module] = []
     width = in_features
     for hidden in hidden_sizes:

@@ -20,6 +20,7 @@ from unipolicy_rl.envs.simulation import (
     WalkerSimulation,
     healthy_rows,
     joint_targets,
+    observation_columns,
 )
 
 
@@ -28,7 +29,10 @@ class BatchedWalkerEnv(EnvBase):
 
     Keys: ``observation`` (float32), ``design`` (l, rho of each robot's current build),
     ``physics_fault`` (the step blew up and was truncated), plus TorchRL's reward and
-    done/terminated/truncated. Episodes are truncated after ``episode_length`` steps, or
+    done/terminated/truncated; with ``full_state`` also ``state``, the ``full`` layout
+    (every link and the actuated joints), of which ``observation`` is then a column
+    selection: what a world model learns from when the policy sees less. Episodes are
+    truncated after ``episode_length`` steps, or
     never with ``None`` (the caller ends them, as training's collector does), and
     early on a physics fault, which repeats the robot's last good observation. Partial
     resets (``_reset`` mask) rebuild only the masked robots; an explicit ``design`` in the
@@ -49,6 +53,7 @@ class BatchedWalkerEnv(EnvBase):
         reward_weights: RewardWeights | None = None,
         episode_length: int | None = 100,
         device: str | torch.device = "cpu",
+        full_state: bool = False,
     ):
         if not (isinstance(num_robots, (int, np.integer)) and num_robots >= 1):
             raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
@@ -60,7 +65,11 @@ class BatchedWalkerEnv(EnvBase):
         self.episode_length = None if episode_length is None else int(episode_length)
         self.append_design = append_design
         robot, physics = robot or RobotSettings(), physics or PhysicsSettings()
-        self.simulations = [WalkerSimulation(robot, physics, observation) for _ in range(num_robots)]
+        self.full_state = full_state
+        # With full_state the robots read the full layout and the observation is a column view of it.
+        read = "full" if full_state else observation
+        self.simulations = [WalkerSimulation(robot, physics, read) for _ in range(num_robots)]
+        self._observation_columns = observation_columns(robot, observation) if full_state else None
         self._action_range = physics.action_range
         self._rng = np.random.default_rng()
         self._steps = np.zeros(num_robots, dtype=np.int64)
@@ -74,9 +83,11 @@ class BatchedWalkerEnv(EnvBase):
         self._designs = np.zeros((num_robots, 2))
         self._faults = np.zeros(num_robots, dtype=bool)
         self._all_robots = np.ones(num_robots, dtype=bool)
-        self._make_specs(raw_size + (2 if append_design else 0), self.simulations[0].num_actions)
+        observation_size = raw_size if self._observation_columns is None else len(self._observation_columns)
+        self._make_specs(observation_size + (2 if append_design else 0), self.simulations[0].num_actions,
+                         raw_size if full_state else None)
 
-    def _make_specs(self, observation_size: int, num_actions: int) -> None:
+    def _make_specs(self, observation_size: int, num_actions: int, state_size: int | None) -> None:
         shape = self.batch_size
         self.observation_spec = Composite(
             observation=Unbounded((*shape, observation_size), dtype=torch.float32, device=self.device),
@@ -84,6 +95,8 @@ class BatchedWalkerEnv(EnvBase):
             physics_fault=Categorical(2, (*shape, 1), dtype=torch.bool, device=self.device),
             shape=shape,
         )
+        if state_size is not None:
+            self.observation_spec["state"] = Unbounded((*shape, state_size), dtype=torch.float32, device=self.device)
         self.action_spec = Bounded(-1.0, 1.0, (*shape, num_actions), dtype=torch.float32, device=self.device)
         self.reward_spec = Unbounded((*shape, 1), dtype=torch.float32, device=self.device)
         flag = Categorical(2, (*shape, 1), dtype=torch.bool, device=self.device)
@@ -98,7 +111,8 @@ class BatchedWalkerEnv(EnvBase):
         # right after 32 robots' physics, torch's own conversions run from cold caches and
         # cost more than numpy's.
         n = self.batch_size[0]
-        observation = np.concatenate([self._raw, self._designs], axis=1) if self.append_design else self._raw
+        raw = self._raw if self._observation_columns is None else self._raw[:, self._observation_columns]
+        observation = np.concatenate([raw, self._designs], axis=1) if self.append_design else raw
         # Copies, never views: the flags array changes in place on later steps and resets,
         # and ``done`` may be that array.
         done = np.zeros((n, 1), dtype=bool) if done is None else done.reshape(n, 1).copy()
@@ -110,6 +124,8 @@ class BatchedWalkerEnv(EnvBase):
             "terminated": np.zeros_like(done),
             "truncated": done.copy(),
         }
+        if self.full_state:
+            out["state"] = self._raw.astype(np.float32)
         if reward is not None:
             out["reward"] = reward.astype(np.float32).reshape(n, 1)
         tensors = {key: torch.from_numpy(value) for key, value in out.items()}

@@ -77,6 +77,24 @@ class RobotSettings:
         return vertebrate(design.length, design.density, self.actuated, self.knee_angle_deg)
 
 
+def observation_columns(robot: RobotSettings, observation: str) -> np.ndarray:
+    """Where each number of an ``observation`` layout sits in the ``full`` layout.
+
+    ``full`` reads every link and the actuated joints; ``thesis`` reads the base and
+    ``robot.observed_links`` in the same per-body order (position xyz, velocity xyz), so it
+    is a column selection of ``full``. A world model that predicts the full state derives the
+    policy's observation with these columns, the same numbers the real env would report.
+    """
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
+    links = [link.name for link in robot.describe(Design(0.175, 0.5)).links]
+    full_size = 6 * len(links) + 2 * len(robot.actuated)
+    if observation == "full":
+        return np.arange(full_size)
+    bodies = [0] + [links.index(name) for name in robot.observed_links]
+    return np.array([6 * body + k for body in bodies for k in range(6)])
+
+
 def joint_targets(actions: np.ndarray, action_range: float) -> np.ndarray:
     """Maps actions in [-1, 1] (clipped) to joint targets within +-action_range of the initial pose.
 

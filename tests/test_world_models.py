@@ -1,0 +1,279 @@
+"""World models: the state layout, the ensembles' fit, the imagined env and the model-based collector."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from unipolicy_rl.collectors import (
+    HorizonSchedule,
+    ImaginationSettings,
+    ModelBasedCollector,
+    RealEpochCollector,
+    StoppingRule,
+    is_imagined,
+)
+from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
+from unipolicy_rl.networks import make_actor, make_critic
+from unipolicy_rl.objectives import TRPOLoss
+from unipolicy_rl.world_models import (
+    CellEnsemble,
+    GaussianEnsemble,
+    ImaginedWalkerEnv,
+    ModelTrainer,
+    StateLayout,
+    make_world_model,
+)
+
+THESIS_FROM_FULL = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+# One body (position and velocity xyz), no joints: small enough to know its dynamics.
+TOY = StateLayout(num_bodies=1, num_joint_values=0, state_columns=tuple(range(6)),
+                  observation_columns=tuple(range(6)))
+
+
+def toy_transitions(n: int, seed: int) -> TensorDict:
+    """A smooth, design-dependent toy dynamics: the change depends on z, the velocities, the
+    action and (l, rho), never on the base's x, y (translation invariant, as the model assumes)."""
+    g = torch.Generator().manual_seed(seed)
+    state = torch.randn(n, 6, generator=g)
+    state[:, :2] *= 10.0  # x, y anywhere: the model must not care
+    action = torch.rand(n, 2, generator=g) * 2 - 1
+    design = torch.stack([0.15 + 0.05 * torch.rand(n, generator=g), 0.4 + 0.2 * torch.rand(n, generator=g)], -1)
+    drive = torch.cat([state[:, 2:], action], -1)
+    change = torch.zeros(n, 6)
+    change[:, :3] = 0.1 * state[:, 3:] + 0.05 * torch.tanh(action[:, :1])
+    change[:, 3:] = 0.2 * torch.tanh(drive @ torch.linspace(-1, 1, 6).reshape(6, 1)) * (design[:, :1] / 0.175)
+    change[:, 5] -= 0.3 * (design[:, 1] - 0.5)
+    return TensorDict({"state": state, "action": action, "design": design, "next_state": state + change}, [n])
+
+
+def one_step_r2(model, data: TensorDict) -> float:
+    """1 - MSE / variance of the true state change, over held-out transitions."""
+    member = model.draw_members(data["design"])
+    predicted = model.predict(data["state"], data["action"], data["design"], member, deterministic=True)
+    true_change = data["next_state"] - data["state"]
+    return float(1 - ((predicted - data["next_state"]) ** 2).mean() / true_change.var(0).mean())
+
+
+def test_layout_derives_the_real_envs_observation_from_its_full_state():
+    env = BatchedWalkerEnv(3, full_state=True)
+    env.set_seed(0)
+    rollout = env.rollout(5)
+    env.close()
+    state = THESIS_FROM_FULL.from_full(rollout["state"])
+    assert torch.equal(THESIS_FROM_FULL.observation(state, rollout["design"]), rollout["observation"])
+    with_design = StateLayout.for_env(RobotSettings(), "thesis", True, "full")
+    assert with_design.observation(state, rollout["design"]).shape[-1] == 20
+
+
+def test_features_do_not_change_when_the_robot_is_moved_across_the_floor():
+    state = torch.randn(4, THESIS_FROM_FULL.size)
+    shifted = state.clone()
+    bodies = THESIS_FROM_FULL.num_bodies
+    for body in range(bodies):
+        shifted[:, 6 * body] += 3.0  # x
+        shifted[:, 6 * body + 1] -= 1.5  # y
+    torch.testing.assert_close(THESIS_FROM_FULL.features(shifted), THESIS_FROM_FULL.features(state))
+    assert not torch.equal(THESIS_FROM_FULL.features(state + 0.1), THESIS_FROM_FULL.features(state))
+
+
+def test_a_policy_cannot_observe_more_than_the_model_predicts():
+    with pytest.raises(ValueError, match="model_state='thesis'"):
+        StateLayout.for_env(RobotSettings(), "full", False, "thesis")
+    with pytest.raises(ValueError, match="'joints'"):
+        StateLayout.for_env(RobotSettings(), "thesis", False, "joints")
+
+
+def test_gaussian_ensemble_fits_a_known_dynamics_and_its_members_differ():
+    torch.manual_seed(0)
+    model = GaussianEnsemble(TOY, action_dim=2, members=4, elites=3, hidden=(64, 64))
+    report = ModelTrainer(max_epochs=40, patience=5, batch_size=128).fit(model, toy_transitions(4000, 0),
+                                                                         torch.Generator().manual_seed(0))
+    held_out = toy_transitions(1000, 1)
+    # Stated accuracy: the held-out one-step prediction explains >= 95% of the state change's variance.
+    assert one_step_r2(model, held_out) >= 0.95, report
+    assert len(report.elites) == 3 and set(report.elites) <= set(range(4))
+    assert torch.argsort(report.validation_error)[:3].tolist() == report.elites
+    # The members are different networks: their predictions disagree (a little) on new data.
+    predictions = torch.stack([
+        model.predict(held_out["state"], held_out["action"], held_out["design"], torch.full((1000,), m),
+                      deterministic=True) for m in range(4)
+    ])
+    spread = predictions.std(0).mean()
+    assert 1e-5 < spread < 0.1 * (held_out["next_state"] - held_out["state"]).std()
+    # Sampled predictions carry the learned noise; deterministic ones do not.
+    member = torch.zeros(1000, dtype=torch.long)
+    args = (held_out["state"], held_out["action"], held_out["design"], member)
+    assert not torch.equal(model.predict(*args), model.predict(*args))
+    assert torch.equal(model.predict(*args, deterministic=True), model.predict(*args, deterministic=True))
+
+
+def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
+    torch.manual_seed(0)
+    model = CellEnsemble(TOY, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6), divisions=2,
+                         hidden=(32, 32))
+    data = toy_transitions(2000, 0)
+    cells = model.cell(data["design"])
+    # Leave the (long, light) cell without data: its networks must stay as initialised.
+    empty = int(model.cell(torch.tensor([[0.19, 0.45]])))
+    data = data[cells != empty]
+    before = [p[empty].clone() for p in model.member_parameters()]
+    report = ModelTrainer(max_epochs=10, patience=3).fit(model, data, torch.Generator().manual_seed(0))
+    assert report.members_without_data == 1
+    assert all(torch.equal(b, p[empty]) for b, p in zip(before, model.member_parameters(), strict=True))
+    assert torch.isinf(report.validation_error[empty]) and torch.isfinite(report.validation_error).sum() == 3
+    # A trajectory of a design is run by its cell's member.
+    assert model.draw_members(torch.tensor([[0.151, 0.41], [0.199, 0.59]])).tolist() == [0, 3]
+
+
+@pytest.mark.parametrize(
+    ("factory", "match"),
+    [
+        (lambda: GaussianEnsemble(TOY, 2, members=0), "members"),
+        (lambda: GaussianEnsemble(TOY, 2, members=3, elites=4), "elites"),
+        (lambda: CellEnsemble(TOY, 2, (0.15, 0.2), (0.4, 0.6), divisions=0), "divisions"),
+        (lambda: HorizonSchedule(start=0), "horizon.start"),
+        (lambda: StoppingRule(kind="metrpo", min_improving_fraction=0.0), "min_improving_fraction"),
+        (lambda: StoppingRule(kind="sometimes"), "stopping.kind"),
+        (lambda: StoppingRule(max_updates=0), "max_updates"),
+        (lambda: ImaginationSettings(rollout="dream"), "rollout"),
+        (lambda: ModelTrainer(patience=0), "patience"),
+    ],
+)
+def test_bad_model_settings_name_the_value(factory, match):
+    with pytest.raises(ValueError, match=match):
+        factory()
+
+
+def _trained_model():
+    torch.manual_seed(0)
+    env = BatchedWalkerEnv(4, full_state=True)
+    env.set_seed(0)
+    rollout = env.rollout(30)
+    env.close()
+    data = TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
+                       "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
+    model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(32,))
+    ModelTrainer(max_epochs=3).fit(model, data, torch.Generator().manual_seed(0))
+    return model, data
+
+
+def _starts(data):
+    return lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design")
+
+
+def test_imagined_env_passes_torchrls_checks_and_rolls_a_policy_for_the_horizon():
+    model, data = _trained_model()
+    reference = BatchedWalkerEnv(1, full_state=True)
+    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=6)
+    check_env_specs(env)
+    policy = make_actor(18, 4)
+    rollout = env.rollout(12, policy, break_when_any_done=False)
+    assert rollout.shape == (6, 12)
+    # The same keys the real env gives, the reward is the real env's reward of the predicted state.
+    for key in ("observation", "design", "physics_fault", "state"):
+        assert key in rollout.keys() and ("next", key) in rollout.keys(True)
+    torch.testing.assert_close(rollout["next", "reward"].squeeze(-1),
+                               rollout["next", "state"][..., 0] - rollout["next", "state"][..., 1].abs()
+                               + rollout["next", "state"][..., 3])
+    assert not rollout["next", "terminated"].any()
+    reference.close()
+
+
+def test_a_diverging_model_ends_the_trajectory_without_poisoning_the_batch():
+    model, data = _trained_model()
+    with torch.no_grad():
+        model.network[-1].bias[:, :, 0] = float("nan")  # every prediction of x is NaN
+    reference = BatchedWalkerEnv(1, full_state=True)
+    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=4)
+    rollout = env.rollout(5, break_when_any_done=False)
+    reference.close()
+    assert rollout["next", "physics_fault"].all() and rollout["next", "truncated"].all()
+    assert not rollout["next", "terminated"].any()
+    assert torch.isfinite(rollout["next", "state"]).all() and torch.isfinite(rollout["next", "reward"]).all()
+    # The state stays where it was, as the real env repeats its last good observation.
+    torch.testing.assert_close(rollout["next", "state"], rollout["state"])
+
+
+def test_truncated_branch_end_bootstraps_from_the_critic():
+    """GAE on a 3-step imagined branch cut by truncation, against a hand computation."""
+    critic = make_critic(1, hidden_sizes=())
+    with torch.no_grad():
+        critic.module[0].weight.fill_(2.0)
+        critic.module[0].bias.fill_(0.5)
+    loss = TRPOLoss(make_actor(1, 1), critic)
+    gamma, lmbda = 0.9, 0.8
+    loss.make_value_estimator(gamma=gamma, lmbda=lmbda)
+    observations = torch.tensor([0.0, 1.0, 2.0, 3.0])  # s0..s3; s3 is the state after the cut
+    rewards = torch.tensor([1.0, -1.0, 2.0])
+
+    def branch(terminated_at_end: bool) -> TensorDict:
+        end = torch.tensor([False, False, True]).reshape(1, 3, 1)
+        return TensorDict({
+            "observation": observations[:3].reshape(1, 3, 1),
+            "next": {
+                "observation": observations[1:].reshape(1, 3, 1),
+                "reward": rewards.reshape(1, 3, 1),
+                "done": end.clone(),
+                "terminated": end.clone() if terminated_at_end else torch.zeros_like(end),
+                "truncated": torch.zeros_like(end) if terminated_at_end else end.clone(),
+            },
+        }, [1, 3])
+
+    value = 2.0 * observations + 0.5
+    deltas = rewards + gamma * value[1:] - value[:3]  # truncated: V(s3) counts
+    expected = torch.zeros(3)
+    running = 0.0
+    for t in reversed(range(3)):
+        running = deltas[t] + gamma * lmbda * running
+        expected[t] = running
+    truncated = loss.compute_advantage(branch(False))
+    torch.testing.assert_close(truncated["advantage"].reshape(3), expected)
+    terminated = loss.compute_advantage(branch(True))
+    # Had the branch terminated, the last step would not see V(s3).
+    torch.testing.assert_close(terminated["advantage"].reshape(3)[-1], rewards[-1] - value[2])
+
+
+def _tiny_collector(stopping: StoppingRule, epochs: int = 2):
+    from functools import partial
+
+    from torchrl.collectors import Collector
+
+    from unipolicy_rl.collectors import truncate_last_step
+    from unipolicy_rl.factories import training_env
+
+    torch.manual_seed(0)
+    policy = make_actor(18, 4)
+    inner = Collector(partial(training_env, 2, episode_length=None, full_state=True), policy, frames_per_batch=20,
+                      total_frames=20 * epochs, postproc=truncate_last_step)
+    real = RealEpochCollector(inner, seed=0, epochs=epochs, frames_per_batch=20)
+    model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(16,))
+    reference = BatchedWalkerEnv(1, full_state=True)
+    reference.close()
+    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4))
+    return ModelBasedCollector(real, model, ModelTrainer(max_epochs=2), policy, reference, RewardWeights(),
+                               imagination, stopping, seed=0, episode_length=10)
+
+
+def test_model_based_collector_alternates_labelled_real_and_imagined_batches():
+    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=3))
+    pattern, shapes = [], set()
+    for batch in collector:
+        pattern.append("I" if is_imagined(batch) else "R")
+        if is_imagined(batch):
+            shapes.add(tuple(batch.shape))
+            assert batch["next", "truncated"][:, -1].all()  # branches end truncated, for the bootstrap
+    collector.shutdown()
+    assert "".join(pattern) == "RIIIRIII"
+    assert shapes == {(10, 4)}  # 40 imagined steps as 10 branches of horizon 4
+    assert collector.real_env_steps == 40 and len(collector.buffer) == 40
+
+
+def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():
+    # The policy never changes between checks, so no member sees an improvement: the rule
+    # stops each epoch at its first check, after check_every updates.
+    collector = _tiny_collector(StoppingRule(kind="metrpo", max_updates=10, check_every=2, check_starts=4,
+                                            check_horizon=3))
+    pattern = "".join("I" if is_imagined(batch) else "R" for batch in collector)
+    collector.shutdown()
+    assert pattern == "RIIRII"

@@ -1,0 +1,251 @@
+"""Neural-network ensembles that predict the robot's next state (the MOE surrogates).
+
+Two models share one interface (:class:`DynamicsModel`), so the trainer, the world model and
+the imagined env take either:
+
+* :class:`GaussianEnsemble` (``world_model=moe``, the default): what model-based RL learned
+  since the thesis (PETS, MBPO, mbrl-lib). Every member sees the design (l, rho) as an input,
+  predicts the *change* of the state from translation-invariant features, as a Gaussian with
+  a learned, softly bounded log-variance (trained by Gaussian NLL); the best members on
+  validation data are the elites, and imagined trajectories draw their member from them.
+* :class:`CellEnsemble` (``world_model=moe_thesis``): the thesis' model ensemble (section
+  4.2/5.2): one member per cell of a grid over (l, rho), each a deterministic position
+  network and velocity network (2 x 200 ReLU) predicting the next state itself, trained
+  by mean squared error on the data of its own cell only; a trajectory uses its design's cell.
+
+Both standardise inputs and targets (floored scales); prediction runs each member only on
+the rows assigned to it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.networks import EnsembleMLP, Standardizer
+
+
+def run_members(network: EnsembleMLP, x: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
+    """``network`` member ``member[i]`` applied to row ``x[i]``, rows grouped by member.
+
+    Rows are packed into ``[members, max rows per member, in]``, so the cost is about one
+    member's pass over the batch rather than every member's.
+    """
+    members = network.members
+    member = member.reshape(-1)
+    order = torch.argsort(member, stable=True)
+    sorted_member = member[order]
+    counts = torch.bincount(sorted_member, minlength=members)
+    starts = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(member.numel(), device=x.device) - starts[sorted_member]
+    packed = x.new_zeros(members, int(counts.max()), x.shape[-1])
+    packed[sorted_member, slot] = x[order]
+    out = network(packed)
+    result = out.new_empty(member.numel(), out.shape[-1])
+    result[order] = out[sorted_member, slot]
+    return result
+
+
+class DynamicsModel(nn.Module):
+    """A batch of members predicting ``next_state`` from ``(state, action, design)``.
+
+    The trainer works in standardised space: ``inputs``/``targets`` build the raw regression
+    pairs, :meth:`fit_normalizers` fits the standardisers, :meth:`training_loss` and
+    :meth:`validation_error` take standardised ``[members, batch, ...]`` tensors and return
+    one value per member and sample (``[members, batch]``; the trainer averages them over
+    each member's own samples). :meth:`predict` maps a real-valued state to the next one.
+    """
+
+    layout: StateLayout
+    members: int
+
+    def __init__(self, layout: StateLayout, input_size: int, target_size: int) -> None:
+        super().__init__()
+        self.layout = layout
+        self.input_norm = Standardizer(input_size)
+        self.target_norm = Standardizer(target_size)
+
+    # -- data -------------------------------------------------------------------------
+    def inputs(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def targets(self, state: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def fit_normalizers(self, inputs: torch.Tensor, targets: torch.Tensor) -> None:
+        self.input_norm.fit(inputs)
+        self.target_norm.fit(targets)
+
+    def data_members(self, design: torch.Tensor) -> torch.Tensor | None:
+        """The member each training sample belongs to, or None when every member sees all data."""
+        return None
+
+    # -- training ---------------------------------------------------------------------
+    def training_loss(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def validation_error(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def regularization(self) -> torch.Tensor:
+        return torch.zeros(())
+
+    def member_parameters(self) -> list[nn.Parameter]:
+        """Parameters whose first dimension is the member (kept per member by early stopping)."""
+        return [p for p in self.parameters() if p.dim() >= 2 and p.shape[0] == self.members]
+
+    def set_elites(self, validation_error: torch.Tensor) -> None:
+        """Called by the trainer with each member's validation error after a fit."""
+
+    # -- prediction -------------------------------------------------------------------
+    def draw_members(self, design: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The member that predicts each row (``[N]`` long) for trajectories of these designs."""
+        raise NotImplementedError
+
+    def predict(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor, member: torch.Tensor,
+                deterministic: bool = False) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class GaussianEnsemble(DynamicsModel):
+    """Probabilistic ensemble of design-conditioned state-change predictors (PETS/MBPO style).
+
+    Args:
+        layout: the state the model predicts.
+        action_dim: number of actions.
+        members: networks in the ensemble (MBPO: 7).
+        elites: how many of the best members (validation MSE) imagined trajectories draw from (MBPO: 5).
+        hidden, activation: each member's MLP.
+        min_log_var, max_log_var: initial soft bounds of the predicted log-variance per output;
+            the bounds are learned (mbrl-lib starts them at -10 and 0.5), with a small penalty
+            on their width so the variance cannot run off where data is thin.
+    """
+
+    BOUND_PENALTY = 0.01
+
+    def __init__(self, layout: StateLayout, action_dim: int, members: int = 7, elites: int = 5,
+                 hidden: Sequence[int] = (200, 200, 200), activation: str = "silu",
+                 min_log_var: float = -10.0, max_log_var: float = 0.5) -> None:
+        if not (isinstance(members, int) and members >= 1):
+            raise ValueError(f"members must be a positive integer, got {members!r}")
+        if not (isinstance(elites, int) and 1 <= elites <= members):
+            raise ValueError(f"elites must be an integer in [1, members={members}], got {elites!r}")
+        if not min_log_var < max_log_var:
+            raise ValueError(f"min_log_var ({min_log_var!r}) must be below max_log_var ({max_log_var!r})")
+        input_size = layout.feature_size + action_dim + 2
+        super().__init__(layout, input_size, layout.size)
+        self.members = members
+        self.network = EnsembleMLP(members, input_size, 2 * layout.size, tuple(hidden), activation)
+        self.min_log_var = nn.Parameter(torch.full((layout.size,), float(min_log_var)))
+        self.max_log_var = nn.Parameter(torch.full((layout.size,), float(max_log_var)))
+        self.register_buffer("elites", torch.arange(elites))
+
+    def inputs(self, state, action, design):
+        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design], dim=-1)
+
+    def targets(self, state, next_state):
+        return next_state - state
+
+    def _mean_and_log_var(self, output: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, raw = output.chunk(2, dim=-1)
+        log_var = self.max_log_var - F.softplus(self.max_log_var - raw)
+        log_var = self.min_log_var + F.softplus(log_var - self.min_log_var)
+        return mean, log_var
+
+    def training_loss(self, x, y):
+        mean, log_var = self._mean_and_log_var(self.network(x))
+        return (((mean - y) ** 2) * torch.exp(-log_var) + log_var).mean(dim=-1)
+
+    def regularization(self):
+        return self.BOUND_PENALTY * (self.max_log_var.sum() - self.min_log_var.sum())
+
+    @torch.no_grad()
+    def validation_error(self, x, y):
+        mean, _ = self._mean_and_log_var(self.network(x))
+        return ((mean - y) ** 2).mean(dim=-1)
+
+    def set_elites(self, validation_error):
+        self.elites.copy_(torch.argsort(validation_error)[: self.elites.numel()])
+
+    def draw_members(self, design, generator=None):
+        pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
+        return self.elites[pick]
+
+    @torch.no_grad()
+    def predict(self, state, action, design, member, deterministic=False):
+        x = self.input_norm(self.inputs(state, action, design))
+        mean, log_var = self._mean_and_log_var(run_members(self.network, x.reshape(-1, x.shape[-1]), member))
+        change = mean if deterministic else mean + torch.randn_like(mean) * torch.exp(0.5 * log_var)
+        return state + self.target_norm.inverse(change).reshape(state.shape)
+
+
+class CellEnsemble(DynamicsModel):
+    """The thesis' ensemble: per (l, rho) cell, a position network and a velocity network.
+
+    Args:
+        layout: the state the model predicts (the thesis predicts its 18-number observation).
+        action_dim: number of actions.
+        length_range, density_range: the design ranges the grid covers.
+        divisions: cells per axis (thesis: 6, so 36 members).
+        hidden, activation: each network (thesis: 2 x 200 ReLU).
+    """
+
+    def __init__(self, layout: StateLayout, action_dim: int, length_range: Sequence[float],
+                 density_range: Sequence[float], divisions: int = 6, hidden: Sequence[int] = (200, 200),
+                 activation: str = "relu") -> None:
+        if not (isinstance(divisions, int) and divisions >= 1):
+            raise ValueError(f"divisions must be a positive integer, got {divisions!r}")
+        input_size = layout.size + action_dim + 2
+        super().__init__(layout, input_size, layout.size)
+        self.members = divisions**2
+        self.divisions = divisions
+        self.register_buffer("low", torch.tensor([length_range[0], density_range[0]], dtype=torch.float32))
+        self.register_buffer("high", torch.tensor([length_range[1], density_range[1]], dtype=torch.float32))
+        self.register_buffer("positions", torch.tensor(layout.position_columns))
+        self.register_buffer("velocities", torch.tensor(layout.velocity_columns))
+        self.position_network = EnsembleMLP(self.members, input_size, len(layout.position_columns), hidden, activation)
+        self.velocity_network = EnsembleMLP(self.members, input_size, len(layout.velocity_columns), hidden, activation)
+
+    def inputs(self, state, action, design):
+        return torch.cat([state, action.clamp(-1.0, 1.0), design], dim=-1)
+
+    def targets(self, state, next_state):
+        return next_state
+
+    def cell(self, design: torch.Tensor) -> torch.Tensor:
+        """The grid cell of each design (designs outside the ranges take the nearest cell)."""
+        width = (self.high - self.low).clamp_min(1e-12)
+        index = ((design.to(self.low.dtype) - self.low) / width * self.divisions).floor().long()
+        index = index.clamp(0, self.divisions - 1)
+        return index[..., 0] * self.divisions + index[..., 1]
+
+    def data_members(self, design):
+        return self.cell(design)
+
+    def _errors(self, x, y):
+        positions = (self.position_network(x) - y[..., self.positions]) ** 2
+        velocities = (self.velocity_network(x) - y[..., self.velocities]) ** 2
+        # Each network's mean squared error, as the two were fitted apart in the thesis.
+        return positions.mean(dim=-1) + velocities.mean(dim=-1)
+
+    def training_loss(self, x, y):
+        return self._errors(x, y)
+
+    @torch.no_grad()
+    def validation_error(self, x, y):
+        return self._errors(x, y)
+
+    def draw_members(self, design, generator=None):
+        return self.cell(design)
+
+    @torch.no_grad()
+    def predict(self, state, action, design, member, deterministic=False):
+        x = self.input_norm(self.inputs(state, action, design)).reshape(-1, self.input_norm.mean.numel())
+        out = x.new_empty(x.shape[0], self.layout.size)
+        out[:, self.positions] = run_members(self.position_network, x, member)
+        out[:, self.velocities] = run_members(self.velocity_network, x, member)
+        return self.target_norm.inverse(out).reshape(state.shape)

@@ -1,0 +1,211 @@
+"""A surrogate as a TorchRL world model, and the env that rolls a policy through it.
+
+:func:`make_world_model` composes a :class:`DynamicsModel` into TorchRL's
+:class:`~torchrl.modules.WorldModel`: the latent is the robot's state itself (``state``),
+the dynamics head predicts the next state, the reward head is the real env's
+:func:`~unipolicy_rl.envs.walking_reward` of it (no learned reward), the done head ends a
+trajectory whose prediction blew up, and the decoder derives the policy's ``observation``.
+:class:`ImaginedWalkerEnv` is TorchRL's :class:`~torchrl.envs.model_based.ModelBasedEnvBase`
+around it, presenting the keys and specs of :class:`~unipolicy_rl.envs.BatchedWalkerEnv`
+(``observation``, ``design``, ``physics_fault``, ``state``, reward, done/terminated/truncated)
+so the same policy, value estimator and :class:`~unipolicy_rl.objectives.TRPOUpdater` work
+on imagined data as on real data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+from torchrl.envs.model_based import ModelBasedEnvBase
+from torchrl.modules import WorldModel
+
+from unipolicy_rl.envs.reward import RewardWeights, walking_reward
+from unipolicy_rl.envs.simulation import healthy_rows
+from unipolicy_rl.world_models.ensemble import DynamicsModel
+
+# A start state: the robot's state and design (and, once assigned, the member that predicts it).
+StartSampler = Callable[[int], TensorDictBase]
+
+
+class PredictNextState(nn.Module):
+    """The dynamics head: ``(state, action, design, member) -> (next state, design, member, fault)``.
+
+    A prediction that is not finite or leaves the real env's explosion limit is a fault:
+    the state stays where it was (as the real env repeats its last good observation) and
+    the done head ends the trajectory, so a diverging model never poisons a batch.
+    ``member_per_step`` redraws the predicting member at every step instead of keeping the
+    trajectory's.
+    """
+
+    def __init__(self, model: DynamicsModel, member_per_step: bool = False, deterministic: bool = False) -> None:
+        super().__init__()
+        self.model = model
+        self.member_per_step = member_per_step
+        self.deterministic = deterministic
+
+    def forward(self, state, action, design, member):
+        if self.member_per_step:
+            member = self.model.draw_members(design).unsqueeze(-1)
+        predicted = self.model.predict(state, action, design, member.squeeze(-1), deterministic=self.deterministic)
+        healthy = healthy_rows(predicted).unsqueeze(-1)
+        next_state = torch.where(healthy, predicted, state)
+        return next_state, design, member, ~healthy
+
+
+class RewardHead(nn.Module):
+    """The real env's reward of the predicted state (the base leads every layout)."""
+
+    def __init__(self, weights: RewardWeights) -> None:
+        super().__init__()
+        self.weights = weights
+
+    def forward(self, state):
+        return walking_reward(state, self.weights).unsqueeze(-1)
+
+
+class DoneHead(nn.Module):
+    """A model fault ends the trajectory as truncated, never terminated: the real robot would
+    have walked on, so the value estimator bootstraps from the critic there."""
+
+    def forward(self, fault):
+        return fault.clone(), torch.zeros_like(fault), fault.clone()
+
+
+class ObservationDecoder(nn.Module):
+    """The policy's observation of the predicted state (:meth:`StateLayout.observation`)."""
+
+    def __init__(self, model: DynamicsModel) -> None:
+        super().__init__()
+        self.layout = model.layout
+
+    def forward(self, state, design):
+        return self.layout.observation(state, design)
+
+
+def make_world_model(model: DynamicsModel, reward_weights: RewardWeights, member_per_step: bool = False,
+                     deterministic: bool = False) -> WorldModel:
+    """Composes ``model`` into TorchRL's ``WorldModel`` (latent = ``state``)."""
+    nxt = "next"
+    # The encoder is the identity: the real env reports the model's state itself.
+    encoder = TensorDictModule(nn.Identity(), in_keys=["state"], out_keys=["state"])
+    dynamics = TensorDictModule(
+        PredictNextState(model, member_per_step, deterministic),
+        in_keys=["state", "action", "design", "member"],
+        out_keys=[(nxt, "state"), (nxt, "design"), (nxt, "member"), (nxt, "physics_fault")],
+    )
+    reward = TensorDictModule(RewardHead(reward_weights), in_keys=[(nxt, "state")], out_keys=[(nxt, "reward")])
+    done = TensorDictModule(DoneHead(), in_keys=[(nxt, "physics_fault")],
+                            out_keys=[(nxt, "done"), (nxt, "terminated"), (nxt, "truncated")])
+    decoder = TensorDictModule(ObservationDecoder(model), in_keys=[(nxt, "state"), (nxt, "design")],
+                               out_keys=[(nxt, "observation")])
+    return WorldModel(encoder, dynamics, reward, done_head=done, decoder=decoder)
+
+
+class ImaginedWalkerEnv(ModelBasedEnvBase):
+    """Rolls policies through a world model, ``batch_size`` trajectories at a time.
+
+    A :class:`~torchrl.envs.model_based.ModelBasedEnvBase`, written as TorchRL's
+    ``WorldModelEnv`` is (the world model's ``step`` writes ``("next", ...)``; the env hands
+    those entries to TorchRL's step machinery), with two differences that keep
+    ``WorldModelEnv`` itself from fitting: it copies a reference env's specs by
+    ``spec.expand(batch_size)``, which fails for specs with a feature dimension such as our
+    ``action`` of shape ``[4]``; and its reset needs a start state in the reset tensordict,
+    while a collector or ``check_env_specs`` resets without one and TorchRL's rollout resets
+    only the trajectories that ended (``_reset`` mask). Here a reset draws start states from
+    ``start_states`` (real states from the replay buffer) for every trajectory it resets that
+    brings none, and assigns each its member.
+
+    Args:
+        world_model: from :func:`make_world_model`.
+        reference_env: a ``BatchedWalkerEnv`` (or a ``TransformedEnv`` of one) whose action,
+            reward and done specs this env copies; it is not stepped.
+        start_states: ``n -> TensorDict(state, design)`` of real start states.
+        batch_size: number of trajectories.
+    """
+
+    def __init__(self, world_model: WorldModel, reference_env: EnvBase, start_states: StartSampler,
+                 batch_size: int) -> None:
+        shape = torch.Size([batch_size])
+        super().__init__(world_model.step_module, device="cpu", batch_size=shape, allow_done_after_reset=True)
+        model = world_model.dynamics.module.model
+        one = (0,) * len(reference_env.batch_size)
+        design = reference_env.observation_spec["design"][one]
+        fault = reference_env.observation_spec["physics_fault"][one]
+        self.observation_spec = Composite(
+            observation=Unbounded((*shape, model.layout.observation_size), dtype=torch.float32),
+            design=design.expand(*shape, *design.shape).clone(),
+            physics_fault=fault.expand(*shape, *fault.shape).clone(),
+            state=Unbounded((*shape, model.layout.size), dtype=torch.float32),
+            member=Categorical(model.members, (*shape, 1), dtype=torch.long),
+            shape=shape,
+        )
+        for name in ("action_spec", "reward_spec", "done_spec"):
+            spec = getattr(reference_env, name)[one]
+            setattr(self, name, spec.expand(*shape, *spec.shape).clone())
+        self.full_world_model = world_model
+        self.model = model
+        self.start_states = start_states
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.world_model(tensordict.copy()).get("next")
+        keys = [*self.observation_spec.keys(), *self.full_reward_spec.keys(), *self.full_done_spec.keys()]
+        return out.select(*keys)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        n = self.batch_size[0]
+        mask = torch.ones(n, dtype=torch.bool)
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(n)
+        if tensordict is None or "state" not in tensordict.keys():
+            start = self.start_states(n)
+        else:
+            start = tensordict.select("state", "design", *(["member"] if "member" in tensordict.keys() else []))
+            if mask.any() and "_reset" in tensordict.keys():
+                fresh = self.start_states(int(mask.sum()))
+                start = start.clone()
+                start["state"][mask] = fresh["state"]
+                start["design"][mask] = fresh["design"]
+                if "member" in start.keys():
+                    start["member"][mask] = self.model.draw_members(fresh["design"]).unsqueeze(-1)
+        state, design = start.get("state").float(), start.get("design").float()
+        member = start.get("member", None)
+        if member is None:
+            member = self.model.draw_members(design).unsqueeze(-1)
+        out = TensorDict(
+            {
+                "state": state,
+                "design": design,
+                "member": member,
+                "observation": self.model.layout.observation(state, design),
+                "physics_fault": torch.zeros(n, 1, dtype=torch.bool),
+            },
+            batch_size=self.batch_size,
+        )
+        zero_done = self.full_done_spec.zero()
+        out.update(zero_done)
+        return out
+
+
+def member_returns(world_model: WorldModel, reference_env: EnvBase, policy: TensorDictModule,
+                   starts: TensorDictBase, horizon: int) -> torch.Tensor:
+    """Mean return of ``policy`` over ``horizon`` imagined steps from ``starts``, one figure per member.
+
+    Every start is rolled out under every member (ME-TRPO's check of a policy on each
+    model), all members in one batched rollout: ``[members]``.
+    """
+    model = world_model.dynamics.module.model
+    n = starts.batch_size[0]
+    members = torch.arange(model.members).repeat_interleave(n)
+    batch = starts.expand(model.members, n).reshape(-1).clone()
+    batch.set("member", members.unsqueeze(-1))
+    env = ImaginedWalkerEnv(world_model, reference_env, lambda k: starts[:k], batch_size=batch.batch_size[0])
+    rollout = env.rollout(horizon, policy, tensordict=env.reset(batch), auto_reset=False,
+                          break_when_any_done=False)
+    returns = rollout.get(("next", "reward")).sum(dim=(1, 2))
+    return returns.reshape(model.members, n).mean(1)

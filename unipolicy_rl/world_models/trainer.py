@@ -1,0 +1,181 @@
+"""Fitting a :class:`~unipolicy_rl.world_models.ensemble.DynamicsModel` on real transitions.
+
+Kept apart from the model, as mbrl-lib's ``ModelTrainer`` is: the model only predicts and
+scores; the trainer splits the data, standardises it, runs the epochs, keeps each member's
+best weights on validation data (early stopping with patience) and tells the model its
+validation errors so it can pick elites.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from unipolicy_rl.world_models.ensemble import DynamicsModel
+
+# Keys of a transition batch (one real step each), as the model-based collector stores them.
+TRANSITION_KEYS = ("state", "action", "design", "next_state")
+
+
+@dataclass
+class FitReport:
+    """What one fit did: epochs run, last training loss, each member's best validation error
+    (standardised MSE), the elites, and the members that had no data (a thesis cell not visited)."""
+
+    epochs: int
+    train_loss: float
+    validation_error: torch.Tensor
+    elites: list[int]
+    members_without_data: int
+    seconds: float
+
+    def as_metrics(self, prefix: str = "model/") -> dict[str, float]:
+        trained = self.validation_error[torch.isfinite(self.validation_error)]
+        elite_error = self.validation_error[self.elites]
+        return {
+            f"{prefix}fit_epochs": float(self.epochs),
+            f"{prefix}train_loss": self.train_loss,
+            f"{prefix}validation_mse": float(elite_error[torch.isfinite(elite_error)].mean()) if trained.numel() else
+            math.nan,
+            f"{prefix}members_without_data": float(self.members_without_data),
+            f"{prefix}fit_seconds": self.seconds,
+        }
+
+
+@dataclass(frozen=True)
+class ModelTrainer:
+    """Adam on minibatches, all members at once, early stopping on each member's validation error.
+
+    Args:
+        learning_rate: Adam step size. A fresh Adam starts every fit (the weights carry over
+            from the previous fit), so a checkpoint needs no optimiser state.
+        batch_size: samples per member per step.
+        max_epochs: upper bound on passes over the training data per fit.
+        patience: stop after this many epochs in which no member improved its validation
+            error by more than ``min_improvement`` (relative).
+        validation_fraction: share of the transitions held out (thesis: 80/20).
+    """
+
+    learning_rate: float = 1e-3
+    batch_size: int = 256
+    max_epochs: int = 50
+    patience: int = 5
+    min_improvement: float = 0.01
+    validation_fraction: float = 0.2
+    weight_decay: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("learning_rate", "min_improvement"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("batch_size", "max_epochs", "patience"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not 0 < self.validation_fraction < 1:
+            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
+        if not self.weight_decay >= 0:
+            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
+
+    def fit(self, model: DynamicsModel, transitions: TensorDictBase,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+        started = time.perf_counter()
+        transitions = transitions.reshape(-1)
+        n = transitions.batch_size[0]
+        if n < 2:
+            raise ValueError(f"need at least 2 transitions to fit and validate a model, got {n}")
+        state, action, design, next_state = (transitions.get(key).float() for key in TRANSITION_KEYS)
+        inputs = model.inputs(state, action, design)
+        targets = model.targets(state, next_state)
+        order = torch.randperm(n, generator=generator)
+        n_validation = max(1, round(self.validation_fraction * n))
+        validation, train = order[:n_validation], order[n_validation:]
+        model.fit_normalizers(inputs[train], targets[train])
+        with torch.no_grad():
+            x, y = model.input_norm(inputs), model.target_norm(targets)
+        owners = model.data_members(design)
+        train_sets = _member_sets(owners, train, model.members)
+        has_data = torch.tensor([len(s) > 0 for s in train_sets])
+        validation_index, validation_mask = _padded(_member_sets(owners, validation, model.members))
+
+        optimizer = torch.optim.Adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
+        member_parameters = model.member_parameters()
+        best_weights = [p.detach().clone() for p in member_parameters]
+        best_error = torch.full((model.members,), math.inf)
+        epochs_without_improvement = 0
+        epochs_run = 0
+        train_loss = math.nan
+        for epochs_run in range(1, self.max_epochs + 1):  # noqa: B007 (the count is reported)
+            index = _epoch_order(train_sets, generator)
+            losses = []
+            for chunk in index.split(self.batch_size, dim=1):
+                per_sample = model.training_loss(x[chunk], y[chunk])  # [members, batch]
+                loss = (per_sample.mean(1) * has_data).sum() + model.regularization()
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                losses.append(loss.detach())
+            train_loss = float(torch.stack(losses).mean()) / max(int(has_data.sum()), 1)
+            error = _masked_mean(model.validation_error(x[validation_index], y[validation_index]), validation_mask)
+            improved = error < best_error - self.min_improvement * best_error.abs()
+            improved |= torch.isinf(best_error) & torch.isfinite(error)
+            if improved.any():
+                best_error = torch.where(improved, error, best_error)
+                with torch.no_grad():
+                    for kept, parameter in zip(best_weights, member_parameters, strict=True):
+                        kept[improved] = parameter[improved]
+                epochs_without_improvement = 0
+            else:
+                epochs_without_improvement += 1
+                if epochs_without_improvement >= self.patience:
+                    break
+        with torch.no_grad():
+            for kept, parameter in zip(best_weights, member_parameters, strict=True):
+                parameter.copy_(kept)
+        model.set_elites(best_error)
+        elites = getattr(model, "elites", torch.arange(model.members))
+        return FitReport(epochs_run, train_loss, best_error, [int(e) for e in elites],
+                         int((~has_data).sum()), time.perf_counter() - started)
+
+
+def _member_sets(owners: torch.Tensor | None, rows: torch.Tensor, members: int) -> list[torch.Tensor]:
+    """The sample indices each member trains (or validates) on, out of ``rows``."""
+    if owners is None:
+        return [rows] * members
+    row_owners = owners[rows]
+    return [rows[row_owners == member] for member in range(members)]
+
+
+def _epoch_order(sets: list[torch.Tensor], generator: torch.Generator | None) -> torch.Tensor:
+    """``[members, L]``: each member's samples shuffled, cycled to the longest set's length."""
+    length = max(len(s) for s in sets)
+    rows = []
+    for samples in sets:
+        if len(samples) == 0:
+            rows.append(torch.zeros(length, dtype=torch.long))
+            continue
+        shuffled = samples[torch.randperm(len(samples), generator=generator)]
+        rows.append(shuffled.repeat(math.ceil(length / len(samples)))[:length])
+    return torch.stack(rows)
+
+
+def _padded(sets: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    length = max(1, max(len(s) for s in sets))
+    index = torch.zeros(len(sets), length, dtype=torch.long)
+    mask = torch.zeros(len(sets), length, dtype=torch.bool)
+    for member, samples in enumerate(sets):
+        index[member, : len(samples)] = samples
+        mask[member, : len(samples)] = True
+    return index, mask
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean over each member's own samples; inf for a member with none."""
+    counts = mask.sum(1)
+    total = torch.where(mask, values, torch.zeros_like(values)).sum(1)
+    return torch.where(counts > 0, total / counts.clamp_min(1), torch.full_like(total, math.inf))
