@@ -2,6 +2,7 @@
 
 from unipolicy_rl.evaluation.grid import (
     CSV_COLUMNS,
+    GRID_WALKING_MEAN,
     WALKING_DISPLACEMENT,
     DesignResult,
     episode_outcomes,
@@ -9,12 +10,14 @@ from unipolicy_rl.evaluation.grid import (
     read_csv,
     rollout_designs,
     summarise,
+    walks_the_grid,
     write_csv,
 )
 from unipolicy_rl.evaluation.plots import plot_heatmaps, plot_training_curve
 
 __all__ = [
     "CSV_COLUMNS",
+    "GRID_WALKING_MEAN",
     "WALKING_DISPLACEMENT",
     "DesignResult",
     "episode_outcomes",
@@ -24,5 +27,6 @@ __all__ = [
     "read_csv",
     "rollout_designs",
     "summarise",
+    "walks_the_grid",
     "write_csv",
 ]

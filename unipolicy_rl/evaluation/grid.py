@@ -23,6 +23,14 @@ from unipolicy_rl.envs.reward import BASE_X
 
 # A design "walks" when its base gets at least this far forward in one episode (m).
 WALKING_DISPLACEMENT = 1.0
+# A policy "walks the grid" when the grid's mean displacement reaches this (m) and every
+# design walks: the level at which sources are compared (real env steps and wall time to it).
+GRID_WALKING_MEAN = 3.0
+
+
+def walks_the_grid(mean_displacement: float, min_displacement: float) -> bool:
+    """Grid mean >= :data:`GRID_WALKING_MEAN` m with every design >= :data:`WALKING_DISPLACEMENT` m."""
+    return mean_displacement >= GRID_WALKING_MEAN and min_displacement >= WALKING_DISPLACEMENT
 DEFAULT_MAX_ROBOTS = 32
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from unipolicy_rl.evaluation import WALKING_DISPLACEMENT, DesignResult, summarise
+from unipolicy_rl.evaluation import GRID_WALKING_MEAN, WALKING_DISPLACEMENT, DesignResult, summarise
 from unipolicy_rl.report import figures, generalisation, markdown
 from unipolicy_rl.report.grids import GridValues, best_achievable, cell, relative_performance, seed_mean
 from unipolicy_rl.report.groups import check_same_robot, group_runs
@@ -215,9 +215,10 @@ def _summary_section(summaries: Sequence) -> Section:
     section = Section("Summary", [
         markdown.table(TABLE_HEADER, [table_row(summary) for summary in summaries]),
         "Mean ± sample sd over finished seeds. Reward and displacement are over the run's final design grid "
-        f"(worst design: its lowest cell); a design walks at >= {WALKING_DISPLACEMENT:g} m. Steps and time to "
-        f"walk: the first epoch whose real training episodes got >= {WALKING_DISPLACEMENT:g} m on average "
-        "(median over the runs that did). The same numbers, unformatted: `summary.csv`.",
+        f"(worst design: its lowest cell); a design walks at >= {WALKING_DISPLACEMENT:g} m. Real env steps and "
+        f"wall time to walk: at the first periodic real-env grid evaluation (`evaluation.every`) with a grid mean "
+        f">= {GRID_WALKING_MEAN:g} m and every design >= {WALKING_DISPLACEMENT:g} m (median over the runs that "
+        "got there). The same numbers, unformatted: `summary.csv`.",
     ])
     header, rows = surrogate_rows(summaries)
     if rows:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from unipolicy_rl.evaluation import WALKING_DISPLACEMENT
+from unipolicy_rl.evaluation import walks_the_grid
 from unipolicy_rl.report.runs import Run
 
 REWARD = "train/episode_reward"  # real episodes' mean return
@@ -80,15 +80,16 @@ def series(run: Run, name: str) -> Series | None:
 
 
 def first_walking(run: Run) -> tuple[float, float] | None:
-    """(real env steps, wall seconds) at the first epoch whose real training episodes walk
-    at least :data:`WALKING_DISPLACEMENT` on average; None if none did."""
-    displacement = series(run, DISPLACEMENT)
-    if displacement is None:
+    """(real env steps, wall seconds) at the first periodic real-env grid evaluation that walks
+    the grid (:func:`~unipolicy_rl.evaluation.walks_the_grid`: mean >= 3 m, every design >= 1 m);
+    None if none did or the run logged no periodic evaluation (``evaluation.every=0``)."""
+    mean, least = series(run, GRID_MEAN), series(run, GRID_MIN)
+    if mean is None or least is None:
         return None
-    walking = np.flatnonzero(displacement.values >= WALKING_DISPLACEMENT)
-    if not len(walking):
+    walking = [i for i, (m, w) in enumerate(zip(mean.values, least.values, strict=True)) if walks_the_grid(m, w)]
+    if not walking:
         return None
-    return float(displacement.steps[walking[0]]), float(displacement.seconds[walking[0]])
+    return float(mean.steps[walking[0]]), float(mean.seconds[walking[0]])
 
 
 def surrogate_figures(run: Run) -> dict[str, float]:

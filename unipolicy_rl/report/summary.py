@@ -70,8 +70,8 @@ def summarise_source(label: str, runs: Sequence[Run], wide: Mapping[str, Sequenc
 
 # -- formatting ------------------------------------------------------------------------
 TABLE_HEADER = ("source", "seeds finished", "mean reward", "worst-design reward", "mean displacement (m)",
-                "worst-design displacement (m)", "designs walking", "real env steps to walk", "wall time to walk",
-                "wider grid walking")
+                "worst-design displacement (m)", "designs walking", "real env steps to walk the grid",
+                "wall time to walk the grid", "wider grid walking")
 
 
 def table_row(summary: SourceSummary) -> list[str]:
