@@ -58,6 +58,11 @@ class ModelTrainer:
         patience: stop after this many epochs in which no member improved its validation
             error by more than ``min_improvement`` (relative).
         validation_fraction: share of the transitions held out (thesis: 80/20).
+        weight_decay: Adam's L2 penalty.
+        num_threads: torch threads during a fit (then restored), or None to leave them. A
+            training run keeps one thread per process (its collector workers would contend
+            otherwise), but the workers sit idle while the model fits, so the fit may use
+            every core.
     """
 
     learning_rate: float = 1e-3
@@ -67,6 +72,7 @@ class ModelTrainer:
     min_improvement: float = 0.01
     validation_fraction: float = 0.2
     weight_decay: float = 0.0
+    num_threads: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("learning_rate", "min_improvement"):
@@ -80,10 +86,20 @@ class ModelTrainer:
             raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
         if not self.weight_decay >= 0:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
+        if self.num_threads is not None and not (isinstance(self.num_threads, int) and self.num_threads >= 1):
+            raise ValueError(f"num_threads must be a positive integer or None, got {self.num_threads!r}")
 
     def fit(self, model: DynamicsModel, transitions: TensorDictBase,
             generator: torch.Generator | None = None) -> FitReport:
         """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.num_threads or threads)
+        try:
+            return self._fit(model, transitions, generator)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _fit(self, model: DynamicsModel, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
         started = time.perf_counter()
         transitions = transitions.reshape(-1)
         n = transitions.batch_size[0]
