@@ -76,27 +76,38 @@ def _annotate_cells(axes, image, values: np.ndarray) -> None:
 
 
 def plot_training_curve(csv_path_or_rows: str | Path | Iterable[Mapping], out_path: str | Path) -> Path:
-    """Episode reward per epoch (and forward displacement when logged) from a metrics CSV or its rows.
+    """Real episode reward (and forward displacement, and the periodic grid evaluation, when
+    logged) from a metrics CSV or its rows, against real env steps when logged, else epochs.
 
-    Expects columns ``epoch`` and ``train/episode_reward``, optionally
-    ``train/forward_displacement``; blank cells (a metric not logged that epoch) are skipped.
+    Expects columns ``epoch`` and ``train/episode_reward``, optionally ``real_env_steps``,
+    ``train/forward_displacement``, ``eval/grid_mean_displacement`` and
+    ``eval/grid_min_displacement``. Blank cells (a metric not logged on that row, as on a
+    model-based run's imagined rows) are skipped, so only real returns are drawn.
     """
     rows = _read_rows(csv_path_or_rows)
-    panels = [("train/episode_reward", "episode reward")]
+    x_column, x_label = ("real_env_steps", "real env steps") if any(
+        _number(row.get("real_env_steps")) is not None for row in rows) else ("epoch", "epoch")
+    panels = [(("train/episode_reward",), "episode reward")]
     if any(_number(row.get("train/forward_displacement")) is not None for row in rows):
-        panels.append(("train/forward_displacement", "forward displacement (m)"))
+        panels.append((("train/forward_displacement",), "forward displacement (m)"))
+    if any(_number(row.get("eval/grid_mean_displacement")) is not None for row in rows):
+        panels.append((("eval/grid_mean_displacement", "eval/grid_min_displacement"), "design grid (m)"))
     figure = Figure(figsize=(7, 3 * len(panels)))
     axes = figure.subplots(len(panels), 1, sharex=True, squeeze=False)
-    for axis, (column, label) in zip(axes[:, 0], panels, strict=True):
-        points = [(_number(row.get("epoch")), _number(row.get(column))) for row in rows]
-        points = [(epoch, value) for epoch, value in points if epoch is not None and value is not None]
-        if not points and column == "train/episode_reward":
-            raise ValueError("no rows with both 'epoch' and 'train/episode_reward': is this a metrics CSV?")
-        epochs, values = [epoch for epoch, _ in points], [value for _, value in points]
-        axis.plot(epochs, values, marker="." if len(points) < 50 else "")
+    for axis, (columns, label) in zip(axes[:, 0], panels, strict=True):
+        for column in columns:
+            points = [(_number(row.get(x_column)), _number(row.get(column))) for row in rows]
+            points = [(x, value) for x, value in points if x is not None and value is not None]
+            if not points and column == "train/episode_reward":
+                raise ValueError(f"no rows with both {x_column!r} and 'train/episode_reward': is this a metrics CSV?")
+            name = column.split("/")[-1].replace("grid_", "").replace("_displacement", "")
+            axis.plot([x for x, _ in points], [value for _, value in points], marker="." if len(points) < 50 else "",
+                      label=name if len(columns) > 1 else None)
+        if len(columns) > 1:
+            axis.legend(loc="best", fontsize=8)
         axis.set_ylabel(label)
         axis.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("epoch")
+    axes[-1, 0].set_xlabel(x_label)
     figure.tight_layout()
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
