@@ -277,3 +277,15 @@ def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():
     pattern = "".join("I" if is_imagined(batch) else "R" for batch in collector)
     collector.shutdown()
     assert pattern == "RIIRII"
+
+
+def test_device_setting_is_checked_and_auto_falls_back_to_the_cpu():
+    from unipolicy_rl.factories import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="'tpu'"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA GPU"):
+            resolve_device("cuda")

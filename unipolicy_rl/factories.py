@@ -161,7 +161,27 @@ def make_dynamics_model(cfg: DictConfig, action_dim: int) -> DynamicsModel:
     layout = StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
                                  cfg.world_model.model_state)
     # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
-    return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
+    model = instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
+    return model.to(resolve_device(cfg.device))
+
+
+def resolve_device(name: str) -> torch.device:
+    """``device`` of the config: ``cpu``, ``cuda[:N]``, or ``auto`` (a GPU when there is one).
+
+    It places the world model (its fit and its predictions); the policy, the critic and the
+    robots stay on the CPU, where their small networks run fastest next to the physics.
+    """
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}") from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name!r} but torch sees no CUDA GPU here; use device=cpu or device=auto")
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
+    return device
 
 
 def make_trpo_updater(cfg: DictConfig, actor, critic) -> TRPOUpdater:

@@ -80,6 +80,11 @@ class DynamicsModel(nn.Module):
         self.input_norm.fit(inputs)
         self.target_norm.fit(targets)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the model fits and predicts (``cfg.device``); callers bring their tensors here."""
+        return self.input_norm.mean.device
+
     def data_members(self, design: torch.Tensor) -> torch.Tensor | None:
         """The member each training sample belongs to, or None when every member sees all data."""
         return None

@@ -51,11 +51,18 @@ class PredictNextState(nn.Module):
 
     def forward(self, state, action, design, member):
         if self.member_per_step:
-            member = self.model.draw_members(design).unsqueeze(-1)
-        predicted = self.model.predict(state, action, design, member.squeeze(-1), deterministic=self.deterministic)
+            member = draw_members(self.model, design).unsqueeze(-1)
+        device = self.model.device
+        predicted = self.model.predict(state.to(device), action.to(device), design.to(device),
+                                       member.squeeze(-1).to(device), deterministic=self.deterministic).to(state.device)
         healthy = healthy_rows(predicted).unsqueeze(-1)
         next_state = torch.where(healthy, predicted, state)
         return next_state, design, member, ~healthy
+
+
+def draw_members(model: DynamicsModel, design: torch.Tensor) -> torch.Tensor:
+    """``model.draw_members`` for designs on any device, answered on theirs."""
+    return model.draw_members(design.to(model.device)).to(design.device)
 
 
 class RewardHead(nn.Module):
@@ -172,11 +179,11 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
                 start["state"][mask] = fresh["state"]
                 start["design"][mask] = fresh["design"]
                 if "member" in start.keys():
-                    start["member"][mask] = self.model.draw_members(fresh["design"]).unsqueeze(-1)
+                    start["member"][mask] = draw_members(self.model, fresh["design"]).unsqueeze(-1)
         state, design = start.get("state").float(), start.get("design").float()
         member = start.get("member", None)
         if member is None:
-            member = self.model.draw_members(design).unsqueeze(-1)
+            member = draw_members(self.model, design).unsqueeze(-1)
         out = TensorDict(
             {
                 "state": state,

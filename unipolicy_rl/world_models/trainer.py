@@ -105,29 +105,32 @@ class ModelTrainer:
         n = transitions.batch_size[0]
         if n < 2:
             raise ValueError(f"need at least 2 transitions to fit and validate a model, got {n}")
-        state, action, design, next_state = (transitions.get(key).float() for key in TRANSITION_KEYS)
+        device = model.device
+        state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
         inputs = model.inputs(state, action, design)
         targets = model.targets(state, next_state)
-        order = torch.randperm(n, generator=generator)
+        order = torch.randperm(n, generator=generator)  # index sets are built on the CPU, then moved
         n_validation = max(1, round(self.validation_fraction * n))
         validation, train = order[:n_validation], order[n_validation:]
         model.fit_normalizers(inputs[train], targets[train])
         with torch.no_grad():
             x, y = model.input_norm(inputs), model.target_norm(targets)
         owners = model.data_members(design)
+        owners = None if owners is None else owners.cpu()
         train_sets = _member_sets(owners, train, model.members)
-        has_data = torch.tensor([len(s) > 0 for s in train_sets])
-        validation_index, validation_mask = _padded(_member_sets(owners, validation, model.members))
+        has_data = torch.tensor([len(s) > 0 for s in train_sets], device=device)
+        validation_index, validation_mask = (t.to(device) for t in _padded(_member_sets(owners, validation,
+                                                                                       model.members)))
 
         optimizer = torch.optim.Adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
         member_parameters = model.member_parameters()
         best_weights = [p.detach().clone() for p in member_parameters]
-        best_error = torch.full((model.members,), math.inf)
+        best_error = torch.full((model.members,), math.inf, device=device)
         epochs_without_improvement = 0
         epochs_run = 0
         train_loss = math.nan
         for epochs_run in range(1, self.max_epochs + 1):  # noqa: B007 (the count is reported)
-            index = _epoch_order(train_sets, generator)
+            index = _epoch_order(train_sets, generator).to(device)
             losses = []
             for chunk in index.split(self.batch_size, dim=1):
                 per_sample = model.training_loss(x[chunk], y[chunk])  # [members, batch]
@@ -155,7 +158,7 @@ class ModelTrainer:
                 parameter.copy_(kept)
         model.set_elites(best_error)
         elites = getattr(model, "elites", torch.arange(model.members))
-        return FitReport(epochs_run, train_loss, best_error, [int(e) for e in elites],
+        return FitReport(epochs_run, train_loss, best_error.cpu(), [int(e) for e in elites],
                          int((~has_data).sum()), time.perf_counter() - started)
 
 
