@@ -1,0 +1,114 @@
+"""A fitted polynomial chaos expansion: evaluation, moments and the thesis' reduction step."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from unipolicy_rl.world_models.pce.basis import Basis, UniformInputs
+from unipolicy_rl.world_models.pce.regression import FitDiagnostics, least_squares
+
+REDUCTIONS = ("projection", "variance")
+
+
+def mean(coefficients: torch.Tensor) -> torch.Tensor:
+    """``E[y] = c_0``: the constant term (``Psi_0 = 1``), ``[..., outputs]`` from ``[..., terms, outputs]``."""
+    return coefficients[..., 0, :]
+
+
+def variance(coefficients: torch.Tensor, norms: torch.Tensor) -> torch.Tensor:
+    """``V[y] = sum_{a != 0} c_a^2 E[Psi_a^2]``, ``[..., outputs]`` (``norms``: ``[terms]``, the constant first)."""
+    return (coefficients[..., 1:, :].pow(2) * norms[1:].to(coefficients).unsqueeze(-1)).sum(-2)
+
+
+class PolynomialChaos:
+    """``y(x) = sum_a c_a Psi_a(z(x))`` for inputs uniform on ``[low, high]``.
+
+    ``coefficients`` are ``[..., terms, outputs]``: leading dims index independent
+    expansions on the same basis (time steps, elements, members).
+
+    >>> pce = PolynomialChaos.fit(x, y, low, high, order=3)    # doctest: +SKIP
+    >>> pce.mean(), pce.variance()                              # doctest: +SKIP
+    """
+
+    def __init__(self, inputs: UniformInputs, basis: Basis, coefficients: torch.Tensor,
+                 diagnostics: FitDiagnostics | None = None) -> None:
+        if basis.dimension != inputs.dimension:
+            raise ValueError(f"the basis has {basis.dimension} inputs, the ranges {inputs.dimension}")
+        if coefficients.shape[-2] != basis.terms:
+            raise ValueError(f"coefficients have {coefficients.shape[-2]} terms, the basis {basis.terms}")
+        self.inputs, self.basis, self.coefficients, self.diagnostics = inputs, basis, coefficients, diagnostics
+
+    @classmethod
+    def fit(cls, x: torch.Tensor, y: torch.Tensor, low: Sequence[float] | torch.Tensor,
+            high: Sequence[float] | torch.Tensor, order: int, truncation: str = "total_degree", q: float = 1.0,
+            max_interaction: int | None = None, orthonormal: bool = True, weights: torch.Tensor | None = None,
+            ridge: float = 0.0) -> PolynomialChaos:
+        """Least squares on samples ``x [..., n, d]`` (inside the ranges) and ``y [..., n, outputs]``."""
+        inputs = UniformInputs(low, high)
+        basis = Basis.create(inputs.dimension, order, truncation, q, max_interaction, orthonormal)
+        n = x.shape[-2]
+        if n < basis.terms:  # refused before the design matrix is built
+            raise ValueError(f"underdetermined fit: {basis.terms} terms but only {n} samples")
+        design = basis(inputs.to_unit(x))
+        coefficients, diagnostics = least_squares(design, y.to(design.dtype), weights, ridge)
+        return cls(inputs, basis, coefficients, diagnostics)
+
+    def __call__(self, x: torch.Tensor, clamp: bool = False) -> torch.Tensor:
+        """``[..., n, outputs]`` at ``x [..., n, d]`` (leading dims broadcast against the coefficients')."""
+        design = self.basis(self.inputs.to_unit(x, clamp=clamp)).to(self.coefficients.dtype)
+        return design @ self.coefficients
+
+    def norms(self) -> torch.Tensor:
+        return self.basis.squared_norms()
+
+    def mean(self) -> torch.Tensor:
+        return mean(self.coefficients)
+
+    def variance(self) -> torch.Tensor:
+        return variance(self.coefficients, self.norms())
+
+    def reduce(self, drop: Sequence[int], mode: str = "projection") -> PolynomialChaos:
+        """The expansion without the inputs ``drop`` (see :func:`reduce`)."""
+        indices, coefficients = reduce(self.coefficients, self.basis.indices, drop, mode, self.norms())
+        keep = [j for j in range(self.inputs.dimension) if j not in set(drop)]
+        inputs = UniformInputs(self.inputs.low[keep], self.inputs.high[keep])
+        return PolynomialChaos(inputs, Basis(indices[:, keep], self.basis.orthonormal), coefficients)
+
+
+def reduce(coefficients: torch.Tensor, indices: torch.Tensor, drop: Sequence[int], mode: str = "projection",
+           norms: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The thesis' reduction step (section 4.1.1): remove inputs (the oldest action of the window)
+    from an expansion, keeping its mean, and its variance where the mode says so.
+
+    ``projection``: the L2 projection on the terms without the dropped inputs, which is the
+    conditional expectation ``E[y | kept inputs]`` (the inputs are independent): the mean is
+    kept (``c_0``), the variance drops by exactly the dropped inputs' share (their total
+    Sobol part, ``sum`` of ``c_a^2 E[Psi_a^2]`` over terms that involve them).
+
+    ``variance``: the thesis' choice (eq. 4.9: reduced coefficients whose variance equals the
+    full one), solved in closed form along the projection: every kept non-constant coefficient
+    scaled by ``sqrt(V_full / V_projected)`` per output, with the Legendre norms
+    ``E[Psi_a^2] = prod 1/(2 a_j + 1)`` (not the Hermite ``a!`` of the thesis' eq. 4.8). An output
+    whose kept terms carry no variance keeps the projection.
+
+    Returns the kept multi-indices (full width; the dropped columns are zero) and their
+    coefficients ``[..., kept terms, outputs]``.
+    """
+    if mode not in REDUCTIONS:
+        raise ValueError(f"reduction must be one of {REDUCTIONS}, got {mode!r}")
+    drop = list(drop)
+    bad = [j for j in drop if not 0 <= j < indices.shape[1]]
+    if bad:
+        raise ValueError(f"cannot drop input {bad[0]}: the expansion has {indices.shape[1]} inputs")
+    norms = torch.ones(indices.shape[0], dtype=torch.float64) if norms is None else norms
+    kept = (indices[:, drop] == 0).all(-1) if drop else torch.ones(indices.shape[0], dtype=torch.bool)
+    reduced = coefficients[..., kept, :]
+    if mode == "variance":
+        full = variance(coefficients, norms)
+        projected = variance(reduced, norms[kept])
+        scale = torch.where(projected > 0, (full / projected.clamp_min(torch.finfo(full.dtype).tiny)).sqrt(),
+                            torch.ones_like(full))
+        reduced = torch.cat([reduced[..., :1, :], reduced[..., 1:, :] * scale.unsqueeze(-2)], dim=-2)
+    return indices[kept], reduced

@@ -1,0 +1,101 @@
+"""Polynomial-chaos coefficients by least squares, many problems in one batched solve.
+
+Every problem (an output, a time step, an element, a bootstrap member) shares the basis;
+batching them turns thousands of small fits into a few large matrix products. The solver
+forms the normal equations ``(X^T W X) c = X^T W Y`` and solves them by Cholesky: cheap, and
+well conditioned for an orthonormal basis on a good sample (its Gram matrix is close to
+``n I``). A problem Cholesky cannot factor falls back to ``torch.linalg.lstsq`` on its own
+rows; a fit that is still not finite raises with its diagnostics rather than return NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class FitDiagnostics:
+    """How a batch of least-squares fits went, one entry per problem.
+
+    ``condition``: an estimate of the design matrix's condition number, the ratio of the
+    largest to the smallest diagonal entry of the Cholesky factor of ``X^T W X`` (a lower bound
+    of cond(X); 1 for a perfectly orthogonal sample); ``exact_condition`` asks for the exact
+    one (an eigendecomposition per problem). ``residual_rms``: root-mean-square training
+    residual per problem and output. ``fallbacks``: problems solved by ``lstsq`` instead.
+    """
+
+    samples: torch.Tensor
+    terms: int
+    condition: torch.Tensor
+    residual_rms: torch.Tensor
+    fallbacks: int
+
+    def summary(self) -> dict[str, float]:
+        return {
+            "terms": float(self.terms),
+            "min_samples": float(self.samples.min()),
+            "max_condition": float(self.condition.max()),
+            "mean_residual_rms": float(self.residual_rms.mean()),
+            "fallbacks": float(self.fallbacks),
+        }
+
+
+def least_squares(design: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor | None = None,
+                  ridge: float = 0.0, exact_condition: bool = False) -> tuple[torch.Tensor, FitDiagnostics]:
+    """Coefficients ``[..., terms, outputs]`` minimising ``sum_i w_i |y_i - x_i c|^2`` per problem.
+
+    Args:
+        design: ``[..., n, terms]``, the basis evaluated at the samples (problems in the leading dims).
+        targets: ``[..., n, outputs]``.
+        weights: ``[..., n]`` sample weights (0 leaves a row out: padding, another element's
+            sample, a bootstrap draw), or None for all ones.
+        ridge: Tikhonov term added to the normal equations' diagonal (0: plain least squares).
+        exact_condition: compute cond(X) exactly (an eigendecomposition per problem).
+
+    Raises:
+        ValueError: non-finite inputs, or a problem with fewer samples (non-zero weights) than
+            terms (an underdetermined fit), before anything is solved.
+    """
+    if design.shape[:-1] != targets.shape[:-1]:
+        raise ValueError(f"design {tuple(design.shape)} and targets {tuple(targets.shape)} disagree on the samples")
+    if not ridge >= 0:
+        raise ValueError(f"ridge must be >= 0, got {ridge!r}")
+    for name, tensor in (("design", design), ("targets", targets)):
+        if not torch.isfinite(tensor).all():
+            raise ValueError(f"{name} has non-finite values")
+    terms = design.shape[-1]
+    if weights is None:
+        weights = torch.ones(design.shape[:-1], dtype=design.dtype, device=design.device)
+    samples = (weights > 0).sum(-1)
+    if (samples < terms).any():
+        raise ValueError(f"underdetermined fit: {terms} terms but only {int(samples.min())} samples in a problem; "
+                         f"use more samples or a smaller basis (lower order, hyperbolic truncation)")
+    weighted = design * weights.unsqueeze(-1)
+    gram = weighted.transpose(-1, -2) @ design
+    if ridge:
+        gram = gram + ridge * torch.eye(terms, dtype=gram.dtype, device=gram.device)
+    moment = weighted.transpose(-1, -2) @ targets
+    factor, info = torch.linalg.cholesky_ex(gram)
+    coefficients = torch.cholesky_solve(moment, factor)
+    diagonal = torch.diagonal(factor, dim1=-2, dim2=-1).abs()
+    condition = diagonal.amax(-1) / diagonal.amin(-1).clamp_min(torch.finfo(diagonal.dtype).tiny)
+    failed = (info != 0) | ~torch.isfinite(coefficients).flatten(-2).all(-1)
+    fallbacks = int(failed.sum())
+    if fallbacks:
+        root = weights.clamp_min(0).sqrt().unsqueeze(-1)
+        solved = torch.linalg.lstsq((design * root)[failed], (targets * root)[failed]).solution
+        coefficients = coefficients.clone()
+        coefficients[failed] = solved
+        condition = condition.clone()
+        condition[failed] = torch.linalg.cond(design[failed] * root[failed])
+    if exact_condition:
+        eigenvalues = torch.linalg.eigvalsh(gram).clamp_min(0)
+        condition = (eigenvalues[..., -1] / eigenvalues[..., 0].clamp_min(torch.finfo(gram.dtype).tiny)).sqrt()
+    residual = (design @ coefficients - targets) * weights.unsqueeze(-1).sqrt()
+    residual_rms = (residual.pow(2).sum(-2) / samples.unsqueeze(-1).to(residual.dtype)).sqrt()
+    diagnostics = FitDiagnostics(samples, terms, condition, residual_rms, fallbacks)
+    if not torch.isfinite(coefficients).all():
+        raise FloatingPointError(f"least squares gave non-finite coefficients: {diagnostics.summary()}")
+    return coefficients, diagnostics
