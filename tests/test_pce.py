@@ -163,3 +163,106 @@ def test_an_ill_conditioned_fit_is_reported_not_silent():
     assert torch.isfinite(coefficients).all()
     assert diagnostics.fallbacks == 1 or diagnostics.condition.max() > 1e6
     torch.testing.assert_close(design @ coefficients, 2 * x + 1)
+
+
+# ---- the one-step PCE world model (world_model=pce) -------------------------------------------
+
+def test_the_one_step_pce_fits_a_toy_dynamics_to_a_stated_held_out_error():
+    from test_world_models import TOY, one_step_r2, toy_transitions
+
+    from unipolicy_rl.world_models import PCEDynamics, PCETrainer
+
+    model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                        interactions="all", members=3)
+    report = PCETrainer().fit(model, toy_transitions(4000, 0), torch.Generator().manual_seed(0))
+    held_out = toy_transitions(1000, 1)
+    # Stated accuracy: the held-out one-step prediction explains >= 95% of the state change's variance.
+    assert one_step_r2(model, held_out) >= 0.95, report
+    assert int(model.fitted_terms) == model.terms == 165 and report.validation_error.shape == (3,)
+    assert (report.validation_error < 0.05).all()
+    member = torch.zeros(1000, dtype=torch.long)
+    args = (held_out["state"], held_out["action"], held_out["design"], member)
+    assert torch.equal(model.predict(*args, deterministic=True), model.predict(*args, deterministic=True))
+    assert not torch.equal(model.predict(*args), model.predict(*args))  # residual noise
+    # Bootstrap members differ, a little.
+    other = model.predict(*args[:3], torch.ones(1000, dtype=torch.long), deterministic=True)
+    assert 0 < (other - model.predict(*args, deterministic=True)).abs().mean() < 0.01
+    # Few data: only the leading (low-degree) terms are fitted, never an underdetermined system.
+    small = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                        interactions="all", members=1)
+    PCETrainer(oversampling=2.0).fit(small, toy_transitions(100, 2), torch.Generator().manual_seed(0))
+    assert int(small.fitted_terms) == 40 and (small.coefficients[:, 40:] == 0).all()
+
+
+def test_the_one_step_pce_sparse_basis_keeps_only_control_interactions():
+    from test_world_models import TOY
+
+    from unipolicy_rl.world_models import PCEDynamics
+
+    model = PCEDynamics(TOY, action_dim=2)  # 4 features, 2 actions, 2 design values
+    active = model.basis.indices > 0
+    multi = active.sum(1) > 1
+    assert (active[multi][:, 4:].any(1)).all() and multi.any()
+    with pytest.raises(ValueError, match="interactions must be one of"):
+        PCEDynamics(TOY, action_dim=2, interactions="some")
+    with pytest.raises(ValueError, match="truncation must be one of"):
+        PCEDynamics(TOY, action_dim=2, truncation="box")
+
+
+def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
+    from test_train import TINY, run_train
+
+    result = run_train(*TINY, "source=pce", "workers=1", "epochs=2", "evaluation.every=1",
+                       "world_model.imagination.steps_per_batch=60", "world_model.imagination.horizon.start=3",
+                       "world_model.imagination.horizon.end=3", "world_model.stopping.max_updates=2",
+                       "world_model.stopping.check_every=2", "world_model.stopping.check_starts=4",
+                       "world_model.stopping.check_horizon=3", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "metrics.csv").read_text()
+    assert "model/validation_mse" in text and "imagined/reward_per_step" in text
+
+
+# ---- the thesis' ME-PCE (standalone) ----------------------------------------------------------
+
+def toy_episodes(n: int, seed: int, horizon: int = 6):
+    """A state that depends smoothly on the design and the last two actions only."""
+    g = torch.Generator().manual_seed(seed)
+    design = torch.stack([0.15 + 0.05 * torch.rand(n, generator=g), 0.4 + 0.2 * torch.rand(n, generator=g)], -1)
+    actions = torch.rand(n, horizon, 2, generator=g) * 2 - 1
+    states = torch.zeros(n, horizon, 2)
+    for t in range(1, horizon + 1):
+        last = actions[:, t - 1]
+        before = actions[:, t - 2] if t >= 2 else torch.zeros_like(last)
+        states[:, t - 1, 0] = 10 * design[:, 0] * last[:, 0] + before[:, 1] ** 2 + 0.1 * t
+        states[:, t - 1, 1] = design[:, 1] * last[:, 1] * before[:, 0]
+    return design, actions, states
+
+
+def test_the_thesis_me_pce_recovers_a_windowed_state_and_its_moments():
+    from unipolicy_rl.world_models.pce import ThesisMEPCE
+
+    design, actions, states = toy_episodes(3000, 0)
+    pce = ThesisMEPCE((0.15, 0.2), (0.4, 0.6), action_dim=2, order=3, divisions=2, window=2)
+    assert pce.terms == math.comb(6 + 3, 3)
+    report = pce.fit(design, actions, states)
+    assert report["max_condition"] < 100
+    d2, a2, s2 = toy_episodes(500, 1)
+    torch.testing.assert_close(pce.predict(d2, a2), s2, atol=1e-4, rtol=0)  # exact: the state is in the basis
+    mean, var = pce.moments()
+    d3, a3, _ = toy_episodes(60_000, 2)
+    sampled = pce.predict(d3, a3)
+    torch.testing.assert_close(mean, sampled.mean(0), atol=0.01, rtol=0.01)
+    torch.testing.assert_close(var, sampled.var(0), atol=0.01, rtol=0.02)
+    # Fitting one more action and reducing it away keeps the mean; the variance mode keeps the variance too.
+    for mode in ("projection", "variance"):
+        reduced = ThesisMEPCE((0.15, 0.2), (0.4, 0.6), action_dim=2, order=3, divisions=2, window=2, reduction=mode)
+        reduced.fit(design, actions, states)
+        reduced_mean, reduced_var = reduced.moments()
+        torch.testing.assert_close(reduced_mean, mean, atol=1e-3, rtol=0)
+        torch.testing.assert_close(reduced_var, var, atol=1e-3, rtol=1e-3)
+    with pytest.raises(ValueError, match="underdetermined fit: 84 terms per element"):
+        pce.fit(design[:200], actions[:200], states[:200])
+    with pytest.raises(ValueError, match="divisions must be an integer >= 1, got 0"):
+        ThesisMEPCE((0.15, 0.2), (0.4, 0.6), divisions=0)
+    with pytest.raises(ValueError, match=r"design \[0.3"):
+        pce.predict(torch.tensor([[0.3, 0.5]]), a2[:1])

@@ -7,6 +7,7 @@ composes it into TorchRL's ``WorldModel``; :class:`ImaginedWalkerEnv` rolls poli
 from unipolicy_rl.world_models.ensemble import CellEnsemble, DynamicsModel, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.pce import PCEDynamics, PCETrainer
 from unipolicy_rl.world_models.trainer import FitReport, ModelTrainer
 
 __all__ = [
@@ -16,6 +17,8 @@ __all__ = [
     "GaussianEnsemble",
     "ImaginedWalkerEnv",
     "ModelTrainer",
+    "PCEDynamics",
+    "PCETrainer",
     "StateLayout",
     "make_world_model",
     "member_returns",

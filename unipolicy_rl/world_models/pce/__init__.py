@@ -10,14 +10,19 @@ from unipolicy_rl.world_models.pce.basis import (
     squared_norms,
     total_degree_terms,
 )
+from unipolicy_rl.world_models.pce.dynamics import PCEDynamics, PCETrainer
 from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, PolynomialChaos, mean, reduce, variance
-from unipolicy_rl.world_models.pce.regression import FitDiagnostics, least_squares
+from unipolicy_rl.world_models.pce.regression import FitDiagnostics, least_squares, solve_normal_equations
+from unipolicy_rl.world_models.pce.thesis import ThesisMEPCE
 
 __all__ = [
     "REDUCTIONS",
     "TRUNCATIONS",
     "Basis",
     "FitDiagnostics",
+    "PCEDynamics",
+    "PCETrainer",
+    "ThesisMEPCE",
     "PolynomialChaos",
     "UniformInputs",
     "least_squares",
@@ -25,6 +30,7 @@ __all__ = [
     "mean",
     "multi_indices",
     "reduce",
+    "solve_normal_equations",
     "squared_norms",
     "total_degree_terms",
     "variance",

@@ -31,6 +31,7 @@ class FitDiagnostics:
     condition: torch.Tensor
     residual_rms: torch.Tensor
     fallbacks: int
+    failed: torch.Tensor
 
     def summary(self) -> dict[str, float]:
         return {
@@ -74,28 +75,54 @@ def least_squares(design: torch.Tensor, targets: torch.Tensor, weights: torch.Te
                          f"use more samples or a smaller basis (lower order, hyperbolic truncation)")
     weighted = design * weights.unsqueeze(-1)
     gram = weighted.transpose(-1, -2) @ design
+    moment = weighted.transpose(-1, -2) @ targets
+    target_square = (targets.pow(2) * weights.unsqueeze(-1)).sum(-2)
+    coefficients, diagnostics = solve_normal_equations(gram, moment, target_square, samples, ridge, exact_condition)
+    if diagnostics.fallbacks:
+        failed = diagnostics.failed
+        root = weights.clamp_min(0).sqrt().unsqueeze(-1)
+        coefficients[failed] = torch.linalg.lstsq((design * root)[failed], (targets * root)[failed]).solution
+        diagnostics.condition[failed] = torch.linalg.cond(design[failed] * root[failed])
+    # With the rows at hand the residual is computed directly (the normal-equation form cancels digits).
+    residual = (design @ coefficients - targets) * weights.clamp_min(0).sqrt().unsqueeze(-1)
+    diagnostics.residual_rms = (residual.pow(2).sum(-2) / samples.unsqueeze(-1).to(residual.dtype)).sqrt()
+    if not torch.isfinite(coefficients).all():
+        raise FloatingPointError(f"least squares gave non-finite coefficients: {diagnostics.summary()}")
+    return coefficients, diagnostics
+
+
+def solve_normal_equations(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.Tensor,
+                           samples: torch.Tensor, ridge: float = 0.0,
+                           exact_condition: bool = False) -> tuple[torch.Tensor, FitDiagnostics]:
+    """Solves ``(G + ridge I) c = X^T W Y`` by Cholesky, for Gram matrices accumulated by the caller
+    (over row chunks, so the design matrix of a large sample is never held at once).
+
+    ``gram`` ``[..., terms, terms]``, ``moment`` ``[..., terms, outputs]``, ``target_square``
+    ``[..., outputs]`` (``sum w y^2``, for the residual), ``samples`` ``[...]`` (rows with
+    non-zero weight). Problems Cholesky cannot factor are flagged in ``diagnostics.failed``
+    (coefficients there are zero) for the caller to solve another way; the Cholesky runs in
+    float64 (cheap next to forming the Gram matrix).
+    """
+    terms = gram.shape[-1]
+    if (samples < terms).any():
+        raise ValueError(f"underdetermined fit: {terms} terms but only {int(samples.min())} samples in a problem; "
+                         f"use more samples or a smaller basis (lower order, hyperbolic truncation)")
+    dtype = moment.dtype
+    gram, moment, target_square = gram.double(), moment.double(), target_square.double()
     if ridge:
         gram = gram + ridge * torch.eye(terms, dtype=gram.dtype, device=gram.device)
-    moment = weighted.transpose(-1, -2) @ targets
     factor, info = torch.linalg.cholesky_ex(gram)
     coefficients = torch.cholesky_solve(moment, factor)
     diagonal = torch.diagonal(factor, dim1=-2, dim2=-1).abs()
     condition = diagonal.amax(-1) / diagonal.amin(-1).clamp_min(torch.finfo(diagonal.dtype).tiny)
     failed = (info != 0) | ~torch.isfinite(coefficients).flatten(-2).all(-1)
-    fallbacks = int(failed.sum())
-    if fallbacks:
-        root = weights.clamp_min(0).sqrt().unsqueeze(-1)
-        solved = torch.linalg.lstsq((design * root)[failed], (targets * root)[failed]).solution
-        coefficients = coefficients.clone()
-        coefficients[failed] = solved
-        condition = condition.clone()
-        condition[failed] = torch.linalg.cond(design[failed] * root[failed])
+    coefficients = torch.where(failed.reshape(*failed.shape, 1, 1), torch.zeros_like(coefficients), coefficients)
     if exact_condition:
         eigenvalues = torch.linalg.eigvalsh(gram).clamp_min(0)
         condition = (eigenvalues[..., -1] / eigenvalues[..., 0].clamp_min(torch.finfo(gram.dtype).tiny)).sqrt()
-    residual = (design @ coefficients - targets) * weights.unsqueeze(-1).sqrt()
-    residual_rms = (residual.pow(2).sum(-2) / samples.unsqueeze(-1).to(residual.dtype)).sqrt()
-    diagnostics = FitDiagnostics(samples, terms, condition, residual_rms, fallbacks)
-    if not torch.isfinite(coefficients).all():
-        raise FloatingPointError(f"least squares gave non-finite coefficients: {diagnostics.summary()}")
-    return coefficients, diagnostics
+    # Residual sum of squares from the normal equations: y'Wy - 2 c'X'Wy + c'Gc (no second pass over the rows).
+    rss = target_square - 2 * (coefficients * moment).sum(-2) + (coefficients * (gram @ coefficients)).sum(-2)
+    residual_rms = (rss.clamp_min(0) / samples.unsqueeze(-1).to(rss.dtype)).sqrt()
+    condition = torch.where(failed, torch.full_like(condition, float("inf")), condition)
+    diagnostics = FitDiagnostics(samples, terms, condition.to(dtype), residual_rms.to(dtype), int(failed.sum()), failed)
+    return coefficients.to(dtype), diagnostics

@@ -1,0 +1,243 @@
+"""The default PCE world model (``world_model=pce``): a one-step transition PCE and its trainer.
+
+The thesis' PCE (one expansion per time step in the design and a window of actions) degrades
+over the episode and cannot follow a gait whose period depends on the design (DESIGN.md §5;
+its own conclusion asks for the current state as an input). Here, as PC-NARX does (Mai,
+Spiridonakos, Chatzi and Sudret 2016), the dynamics carry the state and the expansion only
+has to describe one control step: the *change* of the state as a Legendre PCE in the same
+translation-invariant features as :class:`~unipolicy_rl.world_models.GaussianEnsemble`
+(:meth:`StateLayout.features`), the actions and the design (l, rho). No action window grows,
+so there is no reduction step and no reduction error.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from unipolicy_rl.world_models.ensemble import DynamicsModel
+from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
+from unipolicy_rl.world_models.pce.regression import solve_normal_equations
+from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
+
+INTERACTIONS = ("all", "controls")
+
+
+class PCEDynamics(DynamicsModel):
+    """State change as a sparse Legendre PCE in (features, actions, design); ``members`` bootstrap fits.
+
+    Inputs are mapped to [-1, 1] by ranges taken from the training data at each fit, widened
+    by ``margin`` of their width on each side (a uniform law on the data's box, the PCE's
+    input measure). At prediction an input outside its range is clamped to it: a polynomial
+    extrapolates badly, and an imagined state may drift a little past the data. For the same
+    reason the predicted change is clamped to the range of changes in the training data (with
+    the same margin): one control step never moves the robot further than the data ever saw,
+    so an imagined rollout cannot run away through the polynomial's tails.
+
+    Why this basis: the inputs are many (96 features, 4 actions and 2 design values for the
+    ``full`` state), and a total-degree basis of order 3 in 102 inputs has 187,460 terms. A
+    q-norm (hyperbolic) truncation keeps every input's univariate polynomial up to ``order``
+    and only low-order interactions (sparsity of effects; Blatman and Sudret 2011), and
+    ``interactions="controls"`` keeps only the interactions that involve an action or the
+    design: the PD motor's torque is a function of (target - angle), and l and rho scale the
+    response to it. The basis is fixed before the data arrive, so all outputs and all members
+    share one design matrix and one Gram matrix per member: a closed-form fit over the
+    whole buffer costs a few matrix products, where greedy sparse solvers (orthogonal
+    matching pursuit, LARS) pick terms per output, one solve per selected term, and must be
+    redone at every refit.
+
+    Members are bootstrap fits (Poisson(1) sample weights, member 0 on the plain sample), so
+    imagined trajectories can draw one and ME-TRPO's stopping rule can compare them;
+    ``predict`` adds each member's residual noise (per output) unless ``deterministic``.
+
+    Args:
+        layout: the state the model predicts.
+        action_dim: number of actions.
+        order: highest polynomial degree of one input.
+        truncation: ``total_degree`` or ``hyperbolic`` (q-norm ``q``).
+        q: the q-norm of ``hyperbolic`` truncation, in (0, 1].
+        max_interaction: most inputs in one term.
+        interactions: ``all``, or ``controls`` (a term with two or more inputs must contain an
+            action or a design input).
+        members: bootstrap fits (1: the plain least-squares fit).
+        margin: share of each input's data range added on both sides of it.
+        ridge: Tikhonov term on the normal equations (per sample, so it does not fade as data grow).
+        chunk_size: rows of the design matrix built at once while fitting (memory bound).
+    """
+
+    def __init__(self, layout: StateLayout, action_dim: int, order: int = 3, truncation: str = "hyperbolic",
+                 q: float = 0.75, max_interaction: int | None = 2, interactions: str = "controls",
+                 members: int = 3, margin: float = 0.1, ridge: float = 1e-6, chunk_size: int = 16384) -> None:
+        if not (isinstance(members, int) and members >= 1):
+            raise ValueError(f"members must be a positive integer, got {members!r}")
+        if interactions not in INTERACTIONS:
+            raise ValueError(f"interactions must be one of {INTERACTIONS}, got {interactions!r}")
+        if not margin >= 0:
+            raise ValueError(f"margin must be >= 0, got {margin!r}")
+        if not ridge >= 0:
+            raise ValueError(f"ridge must be >= 0, got {ridge!r}")
+        if not (isinstance(chunk_size, int) and chunk_size >= 1):
+            raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+        input_size = layout.feature_size + action_dim + 2
+        super().__init__(layout, input_size, layout.size)
+        indices = multi_indices(input_size, order, truncation, q, max_interaction)
+        if interactions == "controls":
+            controls = torch.zeros(input_size, dtype=torch.bool)
+            controls[layout.feature_size:] = True
+            active = indices > 0
+            indices = indices[(active.sum(1) <= 1) | (active & controls).any(1)]
+        self.basis = Basis(indices)
+        self.members = members
+        self.margin, self.ridge, self.chunk_size = margin, ridge, chunk_size
+        self.register_buffer("low", -torch.ones(input_size))
+        self.register_buffer("high", torch.ones(input_size))
+        self.register_buffer("change_low", -torch.full((layout.size,), math.inf))
+        self.register_buffer("change_high", torch.full((layout.size,), math.inf))
+        self.register_buffer("coefficients", torch.zeros(members, self.basis.terms, layout.size))
+        self.register_buffer("residual_std", torch.zeros(members, layout.size))
+        self.register_buffer("elites", torch.arange(members))
+        self.register_buffer("fitted_terms", torch.zeros((), dtype=torch.long))  # the leading terms the data fitted
+
+    @property
+    def terms(self) -> int:
+        return self.basis.terms
+
+    def inputs(self, state, action, design):
+        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design.to(state.dtype)], dim=-1)
+
+    def targets(self, state, next_state):
+        return next_state - state
+
+    @torch.no_grad()
+    def set_ranges(self, inputs: torch.Tensor) -> None:
+        low, high = inputs.amin(0), inputs.amax(0)
+        # A constant input (a locked joint's rate) gets a unit-free width so z stays finite.
+        width = (high - low).clamp_min(1e-6)
+        self.low.copy_(low - self.margin * width)
+        self.high.copy_(high + self.margin * width)
+
+    def design_matrix(self, inputs: torch.Tensor) -> torch.Tensor:
+        """``[..., terms]``: the basis at the inputs, each clamped into its range."""
+        z = (2.0 * inputs - (self.low + self.high)) / (self.high - self.low)
+        return self.basis(z.clamp(-1.0, 1.0))
+
+    def draw_members(self, design, generator=None):
+        pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
+        return self.elites[pick]
+
+    @torch.no_grad()
+    def predict(self, state, action, design, member, deterministic=False):
+        x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
+        member = member.reshape(-1)
+        # Every member's change for every row, then each row's own: cheap next to building x.
+        every = (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
+        change = every[torch.arange(x.shape[0], device=x.device), member]
+        if not deterministic:
+            change = change + torch.randn_like(change) * self.residual_std[member]
+        change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
+        return state + change.reshape(state.shape)
+
+
+@dataclass(frozen=True)
+class PCETrainer:
+    """Closed-form fit of a :class:`PCEDynamics`: same call and report as :class:`ModelTrainer`.
+
+    The transitions are split (``validation_fraction`` held out), the input ranges are taken
+    from the training part, the normal equations of every member are accumulated over row
+    chunks and solved by Cholesky (float64), and each member's validation error is the mean
+    over outputs of its MSE divided by the output's variance (standardised MSE, as the
+    ensemble's trainer reports). An epoch count of 1 is reported.
+
+    The data decide how much of the basis is fitted: the first ``min(terms, n_train /
+    oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
+    the rest kept at zero, so the first epochs (1,000 real transitions) fit a lower-order model
+    and no fit is underdetermined; least-squares PCE wants 2-3 samples per term.
+
+    Args:
+        validation_fraction: share of the transitions held out.
+        oversampling: training transitions per fitted term, at least.
+        num_threads: torch threads during a fit (then restored), or None to leave them.
+    """
+
+    validation_fraction: float = 0.2
+    oversampling: float = 2.0
+    num_threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 < self.validation_fraction < 1:
+            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
+        if not self.oversampling >= 1:
+            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
+        if self.num_threads is not None and not (isinstance(self.num_threads, int) and self.num_threads >= 1):
+            raise ValueError(f"num_threads must be a positive integer or None, got {self.num_threads!r}")
+
+    def fit(self, model: PCEDynamics, transitions: TensorDictBase,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.num_threads or threads)
+        try:
+            return self._fit(model, transitions, generator)
+        finally:
+            torch.set_num_threads(threads)
+
+    @torch.no_grad()
+    def _fit(self, model: PCEDynamics, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
+        started = time.perf_counter()
+        transitions = transitions.reshape(-1)
+        n = transitions.batch_size[0]
+        device = model.device
+        state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
+        inputs, targets = model.inputs(state, action, design), model.targets(state, next_state)
+        order = torch.randperm(n, generator=generator)
+        n_validation = max(1, round(self.validation_fraction * n))
+        validation, train = order[:n_validation].to(device), order[n_validation:].to(device)
+        terms = min(model.terms, int(len(train) / self.oversampling))
+        if terms < 1:
+            raise ValueError(f"need at least {self.oversampling} training transitions per PCE term, got {len(train)}")
+        model.set_ranges(inputs[train])
+        low, high = targets[train].amin(0), targets[train].amax(0)
+        model.change_low.copy_(low - model.margin * (high - low))
+        model.change_high.copy_(high + model.margin * (high - low))
+        # Poisson(1) bootstrap weights; member 0 fits the plain sample.
+        weights = torch.poisson(torch.ones(model.members, len(train)), generator=generator).to(device)
+        weights[0] = 1.0
+        outputs = targets.shape[-1]
+        gram = torch.zeros(model.members, terms, terms, device=device)
+        moment = torch.zeros(model.members, terms, outputs, device=device)
+        square = torch.zeros(model.members, outputs, device=device, dtype=torch.float64)
+        for rows in torch.arange(len(train), device=device).split(model.chunk_size):
+            x = model.design_matrix(inputs[train[rows]])[:, :terms]
+            y = targets[train[rows]]
+            w = weights[:, rows].unsqueeze(-1)
+            weighted = x * w  # [members, rows, terms]
+            gram += weighted.transpose(-1, -2) @ x
+            moment += weighted.transpose(-1, -2) @ y
+            square += (w * y.pow(2)).sum(1).double()
+        samples = (weights > 0).sum(1)
+        # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
+        ridge = model.ridge * weights.sum(1).reshape(-1, 1, 1)
+        gram = gram + ridge * torch.eye(terms, device=device)
+        coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
+        if diagnostics.fallbacks:
+            raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
+                                     f"raise world_model.model.ridge or lower the order")
+        model.coefficients.zero_()
+        model.coefficients[:, :terms] = coefficients
+        model.fitted_terms.fill_(terms)
+        model.residual_std.copy_(diagnostics.residual_rms)
+        # ---- validation: standardised MSE per member
+        x = model.design_matrix(inputs[validation])[:, :terms]
+        predicted = (x @ coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (model.members, outputs))
+        truth = targets[validation].unsqueeze(1)
+        scale = targets[train].var(0, correction=0).clamp_min(1e-12)
+        error = ((predicted - truth).pow(2) / scale).mean(dim=(0, 2))
+        error = torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf)).cpu()
+        model.set_elites(error)
+        train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
+        return FitReport(1, train_error, error, [int(e) for e in model.elites], 0, time.perf_counter() - started)

@@ -1,0 +1,172 @@
+"""The thesis' multi-element PCE (sections 4.1, 5.1; Algorithm 2), fitted in batched solves.
+
+The state at each control step ``t = 1..H`` is a Legendre PCE in the design (l, rho) and the
+actions of the last ``window`` steps, ``u_{t-T} .. u_{t-1}`` (``T = window``), one local PCE per
+element of a ``divisions x divisions`` grid over (l, rho) (thesis: 7 x 7, order 3, T = 3: with
+4 actions, 14 inputs and C(17, 3) = 680 terms). Within its element the design is uniform and
+mapped to [-1, 1]; actions are uniform on [-1, 1]. The first ``T - 1`` steps have fewer past
+actions: terms of a missing action are held at zero (their Gram rows are replaced by the
+identity), so every step and element shares one basis and one batched solve.
+
+Fitting the window's variables directly by least squares is the L2 projection of the state on
+the windowed basis, which is what the thesis' reduction step approximates (its eq. 4.9, with
+the wrong norms): :meth:`ThesisMEPCE.fit` with ``reduction="projection"`` or ``"variance"``
+instead fits the window plus the action that leaves it and reduces with
+:func:`~unipolicy_rl.world_models.pce.expansion.reduce` (``variance`` keeps the full
+variance, as the thesis asks, with the Legendre norms).
+
+This is a standalone UQ/fit class, not a :class:`~unipolicy_rl.world_models.DynamicsModel`:
+it predicts the state at step ``t`` from the design and the action window, with no current
+state, so an imagined env would have to carry the step index and the last ``T`` actions in its
+state, which the world-model layer's ``predict(state, action, design, member)`` does not pass.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
+from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, reduce
+from unipolicy_rl.world_models.pce.regression import FitDiagnostics, solve_normal_equations
+
+
+class ThesisMEPCE:
+    """Per-step, per-element PCE of the state in (l, rho, last ``window`` actions).
+
+    Args:
+        length_range, density_range: the design box the grid covers.
+        action_dim: actions per step (4).
+        order, truncation, q: the basis (thesis: order 3, total degree).
+        divisions: elements per design axis (thesis: 7).
+        window: past actions in the expansion (thesis: T = 3).
+        reduction: ``none`` (fit the window directly), ``projection`` or ``variance`` (fit one
+            more action, then drop it by the reduction step).
+        ridge: Tikhonov term on the normal equations.
+    """
+
+    def __init__(self, length_range, density_range, action_dim: int = 4, order: int = 3,
+                 truncation: str = "total_degree", q: float = 1.0, divisions: int = 7, window: int = 3,
+                 reduction: str = "none", ridge: float = 0.0) -> None:
+        if not (isinstance(divisions, int) and divisions >= 1):
+            raise ValueError(f"divisions must be an integer >= 1, got {divisions!r}")
+        if not (isinstance(window, int) and window >= 1):
+            raise ValueError(f"window must be an integer >= 1, got {window!r}")
+        if reduction not in ("none", *REDUCTIONS):
+            raise ValueError(f"reduction must be one of {('none', *REDUCTIONS)}, got {reduction!r}")
+        self.low = torch.tensor([length_range[0], density_range[0]], dtype=torch.float64)
+        self.high = torch.tensor([length_range[1], density_range[1]], dtype=torch.float64)
+        if not (self.high > self.low).all():
+            raise ValueError(f"design ranges must have low < high, got {length_range!r} and {density_range!r}")
+        self.action_dim, self.divisions, self.window, self.reduction, self.ridge = (action_dim, divisions, window,
+                                                                                  reduction, ridge)
+        self.fit_window = window + (reduction != "none")
+        self.fit_basis = Basis(multi_indices(2 + action_dim * self.fit_window, order, truncation, q))
+        kept = (self.fit_basis.indices[:, 2:2 + action_dim] == 0).all(1) if reduction != "none" else None
+        self.basis = self.fit_basis if kept is None else Basis(self.fit_basis.indices[kept][:, [0, 1, *range(
+            2 + action_dim, 2 + action_dim * self.fit_window)]])
+        self.coefficients: torch.Tensor | None = None  # [H, elements, terms, outputs]
+        self.diagnostics: FitDiagnostics | None = None
+
+    @property
+    def elements(self) -> int:
+        return self.divisions**2
+
+    @property
+    def terms(self) -> int:
+        return self.basis.terms
+
+    def element(self, design: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each design's element and its position in it mapped to [-1, 1]^2; a design outside the box is refused."""
+        u = (design.double() - self.low) / (self.high - self.low)
+        if ((u < -1e-9) | (u > 1 + 1e-9) | ~torch.isfinite(u)).any():
+            bad = design.reshape(-1, 2)[((u < -1e-9) | (u > 1 + 1e-9) | ~torch.isfinite(u)).reshape(-1, 2).any(1)][0]
+            raise ValueError(f"design {bad.tolist()} lies outside the uniform ranges {self.low.tolist()} - "
+                             f"{self.high.tolist()}")
+        cell = (u * self.divisions).floor().clamp(0, self.divisions - 1)
+        local = 2 * (u * self.divisions - cell) - 1
+        return (cell[..., 0] * self.divisions + cell[..., 1]).long(), local
+
+    def _inputs(self, local: torch.Tensor, actions: torch.Tensor, t: int, window: int) -> torch.Tensor:
+        """``[E, 2 + a * window]``: design in its element, then ``u_{t-window} .. u_{t-1}`` (zeros before the start)."""
+        past = actions.new_zeros(actions.shape[0], window, self.action_dim)
+        first = max(0, t - window)
+        past[:, window - (t - first):] = actions[:, first:t]
+        return torch.cat([local, past.clamp(-1, 1).flatten(1).to(local.dtype)], dim=-1)
+
+    def _missing_terms(self, basis: Basis, t: int, window: int) -> torch.Tensor:
+        """Terms that involve an action slot before the episode start at step ``t``."""
+        missing = max(0, window - t) * self.action_dim
+        return (basis.indices[:, 2:2 + missing] > 0).any(1)
+
+    @torch.no_grad()
+    def fit(self, design: torch.Tensor, actions: torch.Tensor, states: torch.Tensor) -> dict[str, float]:
+        """``design [E, 2]`` per episode, ``actions [E, H, a]``, ``states [E, H, outputs]`` (``states[:, t-1]``
+        is the state after action ``t - 1``). Returns timing and conditioning figures."""
+        started = time.perf_counter()
+        element, local = self.element(design)
+        order = torch.argsort(element, stable=True)
+        counts = torch.bincount(element, minlength=self.elements)
+        if int(counts.min()) < self.fit_basis.terms:
+            raise ValueError(f"underdetermined fit: {self.fit_basis.terms} terms per element but element "
+                             f"{int(counts.argmin())} has {int(counts.min())} episodes; collect more episodes "
+                             f"or use fewer divisions / a lower order")
+        # Episodes packed per element: [elements, max count], padding rows weighted 0.
+        slot = torch.arange(len(order)) - (torch.cumsum(counts, 0) - counts)[element[order]]
+        rows = torch.zeros(self.elements, int(counts.max()), dtype=torch.long)
+        weight = torch.zeros(self.elements, int(counts.max()), dtype=torch.float32)
+        rows[element[order], slot] = order
+        weight[element[order], slot] = 1.0
+        horizon, outputs = states.shape[1], states.shape[2]
+        coefficients = torch.empty(horizon, self.elements, self.terms, outputs, dtype=torch.float32)
+        conditions, residuals = [], []
+        for t in range(1, horizon + 1):
+            x = self.fit_basis(self._inputs(local, actions, t, self.fit_window).float())[rows] * weight.unsqueeze(-1)
+            y = states[:, t - 1].float()[rows] * weight.unsqueeze(-1)
+            gram = x.transpose(1, 2) @ x
+            moment = x.transpose(1, 2) @ y
+            missing = self._missing_terms(self.fit_basis, t, self.fit_window)
+            # Terms of actions not yet taken: identity rows, so their coefficients solve to zero.
+            gram[:, missing] = 0.0
+            gram[:, :, missing] = 0.0
+            gram[:, missing, missing] = 1.0
+            moment[:, missing] = 0.0
+            c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts, self.ridge)
+            if diagnostics.fallbacks:
+                raise FloatingPointError(f"step {t}: {diagnostics.fallbacks} elements could not be factored "
+                                         f"({diagnostics.summary()}); use ridge > 0 or fewer terms")
+            if self.reduction != "none":
+                _, c = reduce(c, self.fit_basis.indices, list(range(2, 2 + self.action_dim)),
+                              self.reduction, self.fit_basis.squared_norms())
+            coefficients[t - 1] = c
+            conditions.append(diagnostics.condition.max())
+            residuals.append(diagnostics.residual_rms.mean())
+        self.coefficients = coefficients
+        return {"seconds": time.perf_counter() - started, "max_condition": float(torch.stack(conditions).max()),
+                "mean_residual_rms": float(torch.stack(residuals).mean()), "terms": float(self.terms),
+                "elements": float(self.elements), "min_episodes_per_element": float(counts.min())}
+
+    @torch.no_grad()
+    def predict(self, design: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """``[E, H, outputs]``: the state after each action (designs ``[E, 2]``, actions ``[E, H, a]``)."""
+        if self.coefficients is None:
+            raise RuntimeError("fit the ME-PCE before predicting")
+        element, local = self.element(design)
+        out = []
+        for t in range(1, self.coefficients.shape[0] + 1):
+            x = self.basis(self._inputs(local, actions, t, self.window).float())
+            out.append((x.unsqueeze(1) @ self.coefficients[t - 1, element]).squeeze(1))
+        return torch.stack(out, 1)
+
+    def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and variance ``[H, outputs]`` of the state over the uniform design and actions,
+        from the coefficients: the elements are equally likely, so the mixture's mean is the mean
+        of the local means and its variance the mean of local (variance + mean^2) minus mean^2."""
+        if self.coefficients is None:
+            raise RuntimeError("fit the ME-PCE first")
+        local_mean = self.coefficients[:, :, 0]
+        local_variance = (self.coefficients[:, :, 1:].pow(2) * self.basis.squared_norms()[1:].float().reshape(
+            1, 1, -1, 1)).sum(2)
+        mean = local_mean.mean(1)
+        return mean, (local_variance + local_mean.pow(2)).mean(1) - mean.pow(2)
