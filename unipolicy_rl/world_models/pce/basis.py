@@ -60,7 +60,7 @@ def multi_indices(dimension: int, order: int, truncation: str = "total_degree", 
                         row[d] = a
                     found.append(tuple(row))
         rows += sorted(found, reverse=True)
-    return torch.tensor(rows, dtype=torch.long)
+    return torch.tensor(rows, dtype=torch.long, device="cpu")  # index bookkeeping: always on the CPU
 
 
 def _compositions(total: int, parts: int) -> list[tuple[int, ...]]:
@@ -77,7 +77,7 @@ def total_degree_terms(dimension: int, order: int) -> int:
 def squared_norms(indices: torch.Tensor, orthonormal: bool = True) -> torch.Tensor:
     """``E[Psi_a^2]`` under the uniform measure on [-1, 1]^d: 1 when orthonormal, else ``prod 1/(2 a_j + 1)``."""
     if orthonormal:
-        return torch.ones(indices.shape[0], dtype=torch.float64)
+        return torch.ones(indices.shape[0], dtype=torch.float64, device="cpu")
     return (1.0 / (2.0 * indices.double() + 1.0)).prod(-1)
 
 
@@ -105,14 +105,14 @@ class Basis:
     """
 
     def __init__(self, indices: torch.Tensor, orthonormal: bool = True) -> None:
-        self.indices = indices.long()
+        self.indices = indices.long().cpu()
         self.orthonormal = orthonormal
         self.dimension = int(indices.shape[1])
         self.order = int(indices.max()) if indices.numel() else 0
         rank = max(1, int((indices > 0).sum(1).max()))
         # Column j * (order + 1) + a of the flattened univariate table is P_a(z_j); the last column is 1.
         ones = self.dimension * (self.order + 1)
-        factors = torch.full((indices.shape[0], rank), ones, dtype=torch.long)
+        factors = torch.full((indices.shape[0], rank), ones, dtype=torch.long, device="cpu")
         for term, row in enumerate(indices.tolist()):
             active = [(j, a) for j, a in enumerate(row) if a > 0]
             for k, (j, a) in enumerate(active):

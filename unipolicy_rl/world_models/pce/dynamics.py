@@ -87,7 +87,7 @@ class PCEDynamics(DynamicsModel):
         super().__init__(layout, input_size, layout.size)
         indices = multi_indices(input_size, order, truncation, q, max_interaction)
         if interactions == "controls":
-            controls = torch.zeros(input_size, dtype=torch.bool)
+            controls = torch.zeros(input_size, dtype=torch.bool, device="cpu")
             controls[layout.feature_size:] = True
             active = indices > 0
             indices = indices[(active.sum(1) <= 1) | (active & controls).any(1)]

@@ -1,0 +1,130 @@
+"""PCE fit time at the thesis' size, against chaospy, and PCE accuracy over the horizon.
+
+    python benchmarks/pce_fit.py [--episodes 3000]
+
+1. Fit time of the thesis-faithful ME-PCE (order 3, 7 x 7 elements, T = 3 actions of 4:
+   14 inputs, 680 terms) for all 100 steps of an episode, 18 outputs (the thesis
+   observation), at 1,020 episodes per element (1.5 x the terms; 49,980 episodes): a sample
+   of that size would take hours of physics here, so this timing uses uniform designs and
+   actions with random targets (the cost does not depend on the values). chaospy's
+   regression (``fit_regression``) is timed on one (element, step) problem of the same size
+   and scaled by the 4,900 problems.
+2. Accuracy on real SE episodes with uniform random actions (benchmarks/pce_data.py, cached
+   in /tmp): held-out episodes, base forward position x and velocity vx, mean relative error
+   with the thesis' floors (1 cm, 1 cm/s), at 0.4 s (6 steps), 10, 25 and 100 steps:
+   the thesis' ME-PCE (what the real sample can determine: order 3 in one element; order 2
+   in 2 x 2) next to the one-step PCE (world_model=pce) rolled out open-loop from the real
+   start state with the real actions.
+The raw PyBullet rate of this run is printed first (machines differ; see DESIGN.md §7).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from env_throughput import raw_pybullet
+from pce_data import collect
+
+from unipolicy_rl.collectors import transitions
+from unipolicy_rl.envs import RobotSettings
+from unipolicy_rl.world_models import PCEDynamics, PCETrainer, StateLayout
+from unipolicy_rl.world_models.pce import ThesisMEPCE
+
+RANGES = ((0.15, 0.20), (0.4, 0.6))
+STEPS = (6, 10, 25, 100)
+
+
+def relative_error(predicted: torch.Tensor, truth: torch.Tensor, floor: float) -> torch.Tensor:
+    """Thesis eq. 5.2 per step: mean |s - s_hat| / max(|s|, floor) over episodes."""
+    return ((predicted - truth).abs() / truth.abs().clamp_min(floor)).mean(0)
+
+
+def timing(threads: int) -> None:
+    torch.set_num_threads(threads)
+    per_element, elements, horizon = 1020, 49, 100
+    n = per_element * elements
+    g = torch.Generator().manual_seed(0)
+    cell = torch.arange(elements).repeat_interleave(per_element)
+    u = (torch.stack([cell // 7, cell % 7], -1) + torch.rand(n, 2, generator=g)) / 7
+    low, high = torch.tensor([r[0] for r in RANGES]), torch.tensor([r[1] for r in RANGES])
+    design = low + (high - low) * u
+    actions = torch.rand(n, horizon, 4, generator=g) * 2 - 1
+    states = torch.randn(n, horizon, 18, generator=g)
+    pce = ThesisMEPCE(*RANGES, order=3, divisions=7, window=3)
+    report = pce.fit(design, actions, states)
+    print(f"thesis ME-PCE fit, 680 terms x 49 elements x 100 steps x 18 outputs, {n} episodes, {threads} threads: "
+          f"{report['seconds']:.1f} s (target 60 s), max condition estimate {report['max_condition']:.1f}")
+    try:
+        import chaospy
+        import numpy as np
+    except ImportError:
+        print("chaospy not installed (pip install -e .[bench]): no comparison")
+        return
+    joint = chaospy.J(*[chaospy.Uniform(-1, 1)] * 14)
+    started = time.perf_counter()
+    expansion = chaospy.generate_expansion(3, joint, normed=True)
+    built = time.perf_counter() - started
+    x = np.random.default_rng(0).uniform(-1, 1, (14, per_element))
+    y = np.random.default_rng(1).normal(size=(per_element, 18))
+    started = time.perf_counter()
+    chaospy.fit_regression(expansion, x, y)
+    one = time.perf_counter() - started
+    print(f"chaospy fit_regression, one (element, step) of the same size: {one:.2f} s (+{built:.1f} s to build the "
+          f"expansion once); x 4,900 problems = {one * 4900:.0f} s, {one * 4900 / report['seconds']:.0f}x ours")
+
+
+def accuracy(episodes: int) -> None:
+    torch.set_num_threads(2)
+    data = collect(episodes, "random")
+    print(f"real data: {episodes} random-action SE episodes, collected at {data['actions_per_second']:.0f} actions/s")
+    ep = data["episodes"]
+    ep = ep[~ep["next", "physics_fault"].squeeze(-1).any(1)]
+    split = int(0.8 * ep.batch_size[0])
+    train, test = ep[:split], ep[split:]
+    thesis = StateLayout.for_env(RobotSettings(), "thesis", False, "thesis")
+    full = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+    truth = test["next", "state"]
+    results = {}
+    for label, kw in (("ME-PCE order 3, 1x1, T=3 (680 terms)", dict(order=3, divisions=1)),
+                      ("ME-PCE order 2, 2x2, T=3 (120 terms)", dict(order=2, divisions=2))):
+        pce = ThesisMEPCE(*RANGES, window=3, **kw)
+        report = pce.fit(train["design"][:, 0], train["action"], thesis.from_full(train["next", "state"]))
+        predicted = pce.predict(test["design"][:, 0], test["action"])
+        results[label] = (predicted[..., 0], predicted[..., 3], report["seconds"])
+    model = PCEDynamics(full, 4)
+    fit = PCETrainer(num_threads=2).fit(model, transitions(train, full.from_full), torch.Generator().manual_seed(0))
+    state = full.from_full(test["state"][:, 0])
+    rolled = []
+    member = torch.zeros(state.shape[0], dtype=torch.long)
+    for k in range(truth.shape[1]):
+        state = model.predict(state, test["action"][:, k], test["design"][:, k], member, deterministic=True)
+        rolled.append(state)
+    rolled = torch.stack(rolled, 1)
+    results[f"one-step PCE ({model.terms} terms), open loop"] = (rolled[..., 0], rolled[..., 3], fit.seconds)
+    print(f"{len(test)} held-out episodes; mean relative error at step " + ", ".join(map(str, STEPS)))
+    print("| model | fit s | x: " + " | ".join(f"{s}" for s in STEPS) + " | vx: " +
+          " | ".join(f"{s}" for s in STEPS) + " |")
+    for label, (x, vx, seconds) in results.items():
+        ex, ev = relative_error(x, truth[..., 0], 0.01), relative_error(vx, truth[..., 3], 0.01)
+        print(f"| {label} | {seconds:.1f} | " + " | ".join(f"{float(ex[s - 1]):.2f}" for s in STEPS) + " | " +
+              " | ".join(f"{float(ev[s - 1]):.2f}" for s in STEPS) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--episodes", type=int, default=3000)
+    parser.add_argument("--skip-timing", action="store_true")
+    parser.add_argument("--skip-accuracy", action="store_true")
+    args = parser.parse_args()
+    rate = raw_pybullet(3000)[0]
+    print(f"raw PyBullet loop: {rate:.0f} actions/s")
+    if not args.skip_timing:
+        timing(2)
+    if not args.skip_accuracy:
+        accuracy(args.episodes)
+
+
+if __name__ == "__main__":
+    main()
