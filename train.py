@@ -47,6 +47,7 @@ from unipolicy_rl.factories import (
     probe_dimensions,
 )
 from unipolicy_rl.observation_statistics import ObservationStatistics
+from unipolicy_rl.validation import validate_config
 
 
 def episode_metrics(batch, control_period: float, episode_length: int) -> dict[str, float]:
@@ -157,6 +158,7 @@ class StopAtEpochEnd:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
+    validate_config(cfg)  # every setting, before any robot is built or any time is spent
     torch.set_num_threads(1)  # PyBullet robots and small networks: threads only contend on 2 cores
     torch.manual_seed(cfg.seed)  # network initialisation
     run_dir = Path(HydraConfig.get().runtime.output_dir)

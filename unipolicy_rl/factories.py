@@ -153,16 +153,18 @@ def make_training_collector(cfg: DictConfig, policy: TensorDictModuleBase, actio
     )
 
 
-def make_dynamics_model(cfg: DictConfig, action_dim: int) -> DynamicsModel:
-    """The world model's dynamics (``world_model.model``), sized for the robot and observation."""
+def make_dynamics_model(cfg: DictConfig, action_dim: int, device: torch.device | str | None = None) -> DynamicsModel:
+    """The world model's dynamics (``world_model.model``), sized for the robot and observation,
+    on ``device`` (default: the config's)."""
     if cfg.get("world_model") is None:
         raise ValueError("a model-based source needs a world_model config (e.g. world_model=moe)")
     robot = cfg.robot
     layout = StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
                                  cfg.world_model.model_state)
     # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
-    model = instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
-    return model.to(resolve_device(cfg.device))
+    device = resolve_device(cfg.device) if device is None else torch.device(device)
+    with torch.device(device):
+        return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -189,12 +191,16 @@ def make_trpo_updater(cfg: DictConfig, actor, critic) -> TRPOUpdater:
     algo = cfg.algo
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
-    trust_region = TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
-                               backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
     return TRPOUpdater(
-        loss, trust_region=trust_region, critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
+        loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
         critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
     )
+
+
+def make_trust_region(cfg: DictConfig) -> TrustRegion:
+    algo = cfg.algo
+    return TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
+                       backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
 
 
 def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:

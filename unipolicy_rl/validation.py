@@ -1,0 +1,138 @@
+"""Every setting a run reads, checked when the run starts, before any robot is built.
+
+A typo should cost a second, not a training run: ``epochs=-1`` would train nothing and save an
+untrained policy, ``algo.gamma=1.5`` would train with a discount above one, and a bad
+``evaluation.grid`` would only fail at the final evaluation, hours later. Settings that
+have their own dataclass (design, robot, physics, reward, trust region, world model parts)
+are built here once so their own checks run now; the plain numbers of the run are checked
+by the rules below. Every error names the config key and the value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from unipolicy_rl.envs.simulation import OBSERVATIONS
+from unipolicy_rl.networks import ACTIVATIONS
+
+
+def _integer(minimum: int) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            return f"must be an integer >= {minimum}"
+        return None
+
+    return check
+
+
+def _number(low: float, high: float, low_open: bool = False, high_open: bool = False) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return "must be a finite number"
+        if value < low or (low_open and value == low) or value > high or (high_open and value == high):
+            return f"must lie in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        return None
+
+    return check
+
+
+def _flag(value) -> str | None:
+    return None if isinstance(value, bool) else "must be true or false"
+
+
+def _one_of(choices) -> Callable[[object], str | None]:
+    return lambda value: None if value in choices else f"must be one of {sorted(choices)}"
+
+
+def _sizes(value) -> str | None:
+    if not all(isinstance(size, int) and not isinstance(size, bool) and size >= 1 for size in value):
+        return "must be a list of positive integers"
+    return None
+
+
+POSITIVE = _integer(1)
+INF = math.inf
+# key -> rule, for the plain values a run reads (dataclass-backed settings check themselves).
+RULES: dict[str, Callable[[object], str | None]] = {
+    "seed": _integer(0),
+    "epochs": POSITIVE,
+    "episodes_per_epoch": POSITIVE,
+    "workers": POSITIVE,
+    "checkpoint_every": POSITIVE,
+    "progress_bar": _flag,
+    "algo.actor_hidden": _sizes,
+    "algo.critic_hidden": _sizes,
+    "algo.activation": _one_of(set(ACTIVATIONS)),
+    "algo.init_log_std": _number(-20.0, 5.0),
+    "algo.gamma": _number(0.0, 1.0, low_open=True),
+    "algo.lmbda": _number(0.0, 1.0),
+    "algo.normalize_advantage": _flag,
+    "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
+    "algo.critic_epochs": POSITIVE,
+    "algo.critic_minibatch_size": POSITIVE,
+    "evaluation.every": _integer(0),
+    "evaluation.grid": POSITIVE,
+    "evaluation.episodes": POSITIVE,
+    "robot.observation": _one_of(set(OBSERVATIONS)),
+    "robot.append_design": _flag,
+    "robot.episode_length": POSITIVE,
+}
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Raises ValueError naming the first bad setting of ``cfg`` (key and value)."""
+    for key, rule in RULES.items():
+        value = _get(cfg, key)
+        problem = rule(value)
+        if problem:
+            raise ValueError(f"{key} {problem}, got {value!r}")
+    if cfg.episodes_per_epoch % cfg.workers:
+        raise ValueError(f"episodes_per_epoch ({cfg.episodes_per_epoch}) must be a multiple of workers "
+                         f"({cfg.workers}): each worker steps an equal share of the robots")
+    # Imported here: factories imports the whole training stack.
+    from unipolicy_rl.envs import DesignDistribution
+    from unipolicy_rl.factories import SOURCE_KINDS, make_dynamics_model, make_trust_region, resolve_device
+
+    evaluation = cfg.evaluation
+    _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
+    _built("design", lambda: instantiate(cfg.design))
+    _built("robot.settings", lambda: instantiate(cfg.robot.settings, _convert_="all"))
+    _built("robot.physics", lambda: instantiate(cfg.robot.physics))
+    _built("robot.reward", lambda: instantiate(cfg.robot.reward))
+    _built("algo", lambda: make_trust_region(cfg))
+    _built("device", lambda: resolve_device(cfg.device))
+    if cfg.source.kind not in SOURCE_KINDS:
+        raise ValueError(f"source.kind must be one of {SOURCE_KINDS}, got {cfg.source.kind!r}")
+    if cfg.source.kind == "model":
+        if cfg.get("world_model") is None:
+            raise ValueError("a model-based source needs a world_model config (e.g. world_model=moe)")
+        for part in ("trainer", "imagination", "stopping"):
+            _built(f"world_model.{part}", lambda part=part: instantiate(cfg.world_model[part]))
+        # On the meta device: the constructor's checks run, no weights are allocated.
+        _built("world_model.model", lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
+
+
+def _get(cfg: DictConfig, key: str):
+    node = cfg
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _built(key: str, build: Callable[[], object]) -> None:
+    """Builds a setting so its own checks run, prefixing any complaint with its key."""
+    try:
+        build()
+    except ValueError as err:
+        raise ValueError(f"{key}: {err}") from None
+    except Exception as err:  # Hydra wraps a constructor's error in its own
+        cause = err.__cause__ or err.__context__ or err
+        if isinstance(cause, ValueError):
+            raise ValueError(f"{key}: {cause}") from None
+        if isinstance(cause, (RuntimeError, OverflowError, MemoryError)):  # sizes no machine could hold
+            raise ValueError(f"{key}: cannot be built ({type(cause).__name__}: {cause})") from None
+        raise
