@@ -63,6 +63,20 @@ def episode_metrics(batch, control_period: float, episode_length: int) -> dict[s
     }
 
 
+def policy_parameters(policy, observations) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy's Gaussian (loc, scale) on raw observations."""
+    with torch.no_grad():
+        out = policy(observations.clone())
+    return out["loc"], out["scale"]
+
+
+def gaussian_kl(old: tuple[torch.Tensor, torch.Tensor], new: tuple[torch.Tensor, torch.Tensor]) -> float:
+    """Mean KL(old || new) of diagonal Gaussians (summed over action dimensions)."""
+    (m1, s1), (m2, s2) = old, new
+    kl = torch.log(s2 / s1) + (s1**2 + (m1 - m2) ** 2) / (2 * s2**2) - 0.5
+    return kl.sum(-1).mean().item()
+
+
 class MetricsCSV:
     """``metrics.csv``: one row per training batch, appended (a resumed run continues the file).
 
@@ -215,10 +229,19 @@ def main(cfg: DictConfig) -> dict:
             if imagined or collector.trains_policy_on_real:
                 normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
                 metrics.update(updater.update(batch))
+                if updater.consecutive_skips >= cfg.algo.max_consecutive_skips:
+                    raise RuntimeError(
+                        f"stopping: {updater.consecutive_skips} updates in a row were skipped "
+                        f"({'; '.join(updater.skip_reasons)}); the last checkpoint, if any, is {checkpoint_path}"
+                    )
             if not imagined:
                 # The next epoch's policy normalises with statistics that include this epoch.
+                # The refresh moves the policy by an amount the trust region does not bound: log it.
+                observations = batch.select("observation").reshape(-1)
+                before = policy_parameters(policy, observations)
                 statistics.update(batch["observation"])
                 statistics.copy_to(normalizer)
+                metrics["train/refresh_kl"] = gaussian_kl(before, policy_parameters(policy, observations))
             collector.update_policy_weights_()
             metrics.update(collector.metrics())
             metrics["time/collect"] = collected - tick

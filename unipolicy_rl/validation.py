@@ -74,6 +74,7 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
     "algo.critic_epochs": POSITIVE,
     "algo.critic_minibatch_size": POSITIVE,
+    "algo.max_consecutive_skips": POSITIVE,
     "evaluation.every": _integer(0),
     "evaluation.grid": POSITIVE,
     "evaluation.episodes": POSITIVE,
