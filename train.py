@@ -31,6 +31,7 @@ from unipolicy_rl.checkpoint import (
     load_checkpoint,
     restore_training_state,
     save_checkpoint,
+    settings_for_resume,
     training_state,
 )
 from unipolicy_rl.collectors import is_imagined
@@ -172,6 +173,10 @@ class StopAtEpochEnd:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
+    state = load_checkpoint(cfg.resume) if cfg.resume else None
+    if state is not None:
+        overridden = [item.split("=", 1)[0].lstrip("+~") for item in HydraConfig.get().overrides.task]
+        cfg = settings_for_resume(cfg, state, overridden, cfg.resume)
     validate_config(cfg)  # every setting, before any robot is built or any time is spent
     torch.set_num_threads(1)  # PyBullet robots and small networks: threads only contend on 2 cores
     torch.manual_seed(cfg.seed)  # network initialisation
@@ -182,7 +187,6 @@ def main(cfg: DictConfig) -> dict:
     normalizer = make_observation_norm(observation_dim)
     statistics = ObservationStatistics(observation_dim)
     updater = make_trpo_updater(cfg, actor, critic)
-    state = load_checkpoint(cfg.resume) if cfg.resume else None
     if state is not None:
         restore_training_state(state, actor=actor, critic=critic, statistics=statistics, updater=updater)
     statistics.copy_to(normalizer)

@@ -133,6 +133,21 @@ def test_a_file_that_is_not_our_checkpoint_is_one_clear_error(tmp_path, content,
     assert "bad.pt" in str(error.value)
 
 
+def test_a_resume_takes_the_checkpoints_network_and_refuses_a_conflicting_override(tmp_path):
+    first = run_train(*TINY, "epochs=1", "workers=1", "algo.actor_hidden=[16]", f"hydra.run.dir={tmp_path / 'a'}")
+    assert first.returncode == 0, first.stderr
+    checkpoint = tmp_path / "a" / "checkpoint.pt"
+    conflicting = run_train(*TINY, "epochs=2", "workers=1", "algo.actor_hidden=[32]", f"resume={checkpoint}",
+                            f"hydra.run.dir={tmp_path / 'b'}")
+    assert conflicting.returncode != 0
+    assert "algo.actor_hidden: [32] here, [16] in the checkpoint" in conflicting.stderr
+    assert "size mismatch" not in conflicting.stderr
+    resumed = run_train(*TINY, "epochs=2", "workers=1", f"resume={checkpoint}", f"hydra.run.dir={tmp_path / 'c'}")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "took algo.actor_hidden from the checkpoint" in resumed.stdout
+    assert load_checkpoint(tmp_path / "c" / "checkpoint.pt")["config"]["algo"]["actor_hidden"] == [16]
+
+
 MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every=1", "world_model.imagination.steps_per_batch=60",
             "world_model.imagination.horizon.start=3", "world_model.imagination.horizon.end=5",
             "world_model.imagination.horizon.first_epoch=1",

@@ -289,3 +289,16 @@ def test_device_setting_is_checked_and_auto_falls_back_to_the_cpu():
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA GPU"):
             resolve_device("cuda")
+
+
+def test_member_returns_survive_a_trajectory_that_faults():
+    from unipolicy_rl.world_models import member_returns
+
+    model, data = _trained_model()
+    with torch.no_grad():
+        model.network[-1].bias[:, :, 0] = float("nan")
+    reference = BatchedWalkerEnv(1, full_state=True)
+    returns = member_returns(make_world_model(model, RewardWeights(), deterministic=True), reference,
+                             make_actor(18, 4), _starts(data)(3), horizon=4)
+    reference.close()
+    assert returns.shape == (3,) and torch.isfinite(returns).all()

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -96,6 +98,45 @@ def restore_training_state(state: dict, *, actor, critic, statistics, updater) -
     statistics.load_state_dict(state["observation_statistics"])
     updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
     updater.generator.set_state(state["critic_generator"])
+
+
+# The settings a checkpoint's weights and model were built for: a resume takes them from the
+# checkpoint. (A dotted key names one setting; a bare group name covers the group.)
+ARCHITECTURE_KEYS = ("algo.actor_hidden", "algo.critic_hidden", "algo.activation", "robot", "world_model.model",
+                     "world_model.model_state")
+
+
+def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str], path: str | Path) -> DictConfig:
+    """``cfg`` with the checkpoint's network, robot and world-model settings (:data:`ARCHITECTURE_KEYS`).
+
+    Weights only load into the networks they were trained in, so a resume rebuilds those,
+    and says which settings it took. A setting the user overrode on the command line to
+    something else is refused, naming the keys, rather than failing in ``load_state_dict``.
+    """
+    saved = OmegaConf.create(state["config"])
+    resumed = cfg.copy()
+    taken, conflicts = [], []
+    for key in ARCHITECTURE_KEYS:
+        ours, theirs = OmegaConf.select(cfg, key), OmegaConf.select(saved, key)
+        if theirs is None or ours == theirs:
+            continue
+        explicit = [name for name in overridden if name == key or name.startswith(f"{key}.")
+                    or key.startswith(f"{name}.")]
+        if explicit:
+            conflicts.append(f"{key}: {_show(ours)} here, {_show(theirs)} in the checkpoint")
+        else:
+            OmegaConf.update(resumed, key, theirs, force_add=True)
+            taken.append(key)
+    if conflicts:
+        raise ValueError(f"cannot resume {str(path)!r} with other network/robot settings ("
+                         + "; ".join(conflicts) + "): drop those overrides, or start a new run")
+    if taken:
+        print(f"resume: took {', '.join(taken)} from the checkpoint (its weights were trained with them)")
+    return resumed
+
+
+def _show(value) -> str:
+    return repr(OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value)
 
 
 def collector_state(state: dict) -> dict:

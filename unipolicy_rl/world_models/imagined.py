@@ -211,7 +211,9 @@ def member_returns(world_model: WorldModel, reference_env: EnvBase, policy: Tens
     members = torch.arange(model.members).repeat_interleave(n)
     batch = starts.expand(model.members, n).reshape(-1).clone()
     batch.set("member", members.unsqueeze(-1))
-    env = ImaginedWalkerEnv(world_model, reference_env, lambda k: starts[:k], batch_size=batch.batch_size[0])
+    # A trajectory that faults restarts from one of the same starts (the reset may ask for any number).
+    env = ImaginedWalkerEnv(world_model, reference_env, lambda k: starts[torch.arange(k) % n],
+                            batch_size=batch.batch_size[0])
     rollout = env.rollout(horizon, policy, tensordict=env.reset(batch), auto_reset=False,
                           break_when_any_done=False)
     returns = rollout.get(("next", "reward")).sum(dim=(1, 2))
