@@ -192,85 +192,86 @@ def main(cfg: DictConfig) -> dict:
     statistics.copy_to(normalizer)
     policy = make_collecting_policy(normalizer, actor)
     collector = make_training_collector(cfg, policy, action_dim)
-    if state is not None:
-        collector.load_state_dict(collector_state(state))
-        print(f"resumed from {cfg.resume} at epoch {state['epoch']}")
-    elapsed_before = state.get("elapsed", 0.0) if state is not None else 0.0
+    # From here on, a failure anywhere still shuts the collector's worker processes down
+    # (else the interpreter waits for them forever on exit).
+    with shutting_down(collector):
+        if state is not None:
+            collector.load_state_dict(collector_state(state))
+            print(f"resumed from {cfg.resume} at epoch {state['epoch']}")
+        elapsed_before = state.get("elapsed", 0.0) if state is not None else 0.0
 
-    logger = instantiate(cfg.logger)
-    checkpoint_path = run_dir / "checkpoint.pt"
-    metrics_csv = MetricsCSV(run_dir / "metrics.csv")
-    grid = cfg.evaluation
-    designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
-    episode_length = cfg.robot.episode_length
-    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
-    config = OmegaConf.to_container(cfg, resolve=True)
-    started = time.perf_counter()
+        logger = instantiate(cfg.logger)
+        checkpoint_path = run_dir / "checkpoint.pt"
+        metrics_csv = MetricsCSV(run_dir / "metrics.csv")
+        grid = cfg.evaluation
+        designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+        episode_length = cfg.robot.episode_length
+        control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
+        config = OmegaConf.to_container(cfg, resolve=True)
+        started = time.perf_counter()
 
-    def checkpoint() -> Path:
-        state = training_state(epoch=collector.epoch, config=config, observation_dim=observation_dim,
-                               action_dim=action_dim, actor=actor, critic=critic, statistics=statistics,
-                               updater=updater, collector=collector,
-                               elapsed=elapsed_before + time.perf_counter() - started)
-        return save_checkpoint(checkpoint_path, state)
+        def checkpoint() -> Path:
+            state = training_state(epoch=collector.epoch, config=config, observation_dim=observation_dim,
+                                   action_dim=action_dim, actor=actor, critic=critic, statistics=statistics,
+                                   updater=updater, collector=collector,
+                                   elapsed=elapsed_before + time.perf_counter() - started)
+            return save_checkpoint(checkpoint_path, state)
 
-    iteration = 0
-    progress = tqdm.tqdm(total=cfg.epochs, initial=collector.epoch, disable=not cfg.progress_bar,
-                         desc=f"{cfg.source.name}-TRPO")
-    postfix: dict[str, str] = {}
-    # A failure anywhere in the loop still shuts the collector's worker processes down (else
-    # the interpreter waits for them forever on exit).
-    with StopAtEpochEnd() as stop, shutting_down(collector):
-        tick = time.perf_counter()
-        for batch in collector:
-            # ---- Data: real episodes (which also refresh the observation statistics) or imagined ones
-            collected = time.perf_counter()
-            imagined = is_imagined(batch)
-            metrics = {"imagined": float(imagined)}
-            if not imagined:
-                metrics.update(episode_metrics(batch, control_period, episode_length))
-            # ---- Policy training
-            if imagined or collector.trains_policy_on_real:
-                normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
-                metrics.update(updater.update(batch))
-                if updater.consecutive_skips >= cfg.algo.max_consecutive_skips:
-                    raise RuntimeError(
-                        f"stopping: {updater.consecutive_skips} updates in a row were skipped "
-                        f"({'; '.join(updater.skip_reasons)}); the last checkpoint, if any, is {checkpoint_path}"
-                    )
-            if not imagined:
-                # The next epoch's policy normalises with statistics that include this epoch.
-                # The refresh moves the policy by an amount the trust region does not bound: log it.
-                observations = batch.select("observation").reshape(-1)
-                before = policy_parameters(policy, observations)
-                statistics.update(batch["observation"])
-                statistics.copy_to(normalizer)
-                metrics["train/refresh_kl"] = gaussian_kl(before, policy_parameters(policy, observations))
-            collector.update_policy_weights_()
-            metrics.update(collector.metrics())
-            metrics["time/collect"] = collected - tick
-            metrics["time/update"] = time.perf_counter() - collected
-            epoch = collector.epoch
-            if not imagined and grid.every and epoch % grid.every == 0:
-                metrics.update(grid_metrics(policy, cfg, designs))
-            metrics["time/elapsed"] = elapsed_before + time.perf_counter() - started
-            iteration += 1
-            for name, value in metrics.items():
-                logger.log_scalar(name, value, step=iteration)
-            metrics_csv.append({"epoch": epoch, **metrics})
-            postfix.update(_progress_figures(metrics))
-            progress.set_postfix(postfix, refresh=False)
+        iteration = 0
+        progress = tqdm.tqdm(total=cfg.epochs, initial=collector.epoch, disable=not cfg.progress_bar,
+                             desc=f"{cfg.source.name}-TRPO")
+        postfix: dict[str, str] = {}
+        with StopAtEpochEnd() as stop:
             tick = time.perf_counter()
-            if imagined:
-                continue
-            # ---- Checkpoint (after every real epoch, where a run can resume exactly)
-            progress.update(1)
-            if epoch % cfg.checkpoint_every == 0 or stop.requested:
-                checkpoint()
-            if stop.requested:
-                progress.close()
-                print(f"stopped: saved epoch {epoch} to {checkpoint_path}; continue with resume={checkpoint_path}")
-                return {"epoch": epoch, "checkpoint": str(checkpoint_path)}
+            for batch in collector:
+                # ---- Data: real episodes (which also refresh the observation statistics) or imagined ones
+                collected = time.perf_counter()
+                imagined = is_imagined(batch)
+                metrics = {"imagined": float(imagined)}
+                if not imagined:
+                    metrics.update(episode_metrics(batch, control_period, episode_length))
+                # ---- Policy training
+                if imagined or collector.trains_policy_on_real:
+                    normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
+                    metrics.update(updater.update(batch))
+                    if updater.consecutive_skips >= cfg.algo.max_consecutive_skips:
+                        raise RuntimeError(
+                            f"stopping: {updater.consecutive_skips} updates in a row were skipped "
+                            f"({'; '.join(updater.skip_reasons)}); the last checkpoint, if any, is {checkpoint_path}"
+                        )
+                if not imagined:
+                    # The next epoch's policy normalises with statistics that include this epoch.
+                    # The refresh moves the policy by an amount the trust region does not bound: log it.
+                    observations = batch.select("observation").reshape(-1)
+                    before = policy_parameters(policy, observations)
+                    statistics.update(batch["observation"])
+                    statistics.copy_to(normalizer)
+                    metrics["train/refresh_kl"] = gaussian_kl(before, policy_parameters(policy, observations))
+                collector.update_policy_weights_()
+                metrics.update(collector.metrics())
+                metrics["time/collect"] = collected - tick
+                metrics["time/update"] = time.perf_counter() - collected
+                epoch = collector.epoch
+                if not imagined and grid.every and epoch % grid.every == 0:
+                    metrics.update(grid_metrics(policy, cfg, designs))
+                metrics["time/elapsed"] = elapsed_before + time.perf_counter() - started
+                iteration += 1
+                for name, value in metrics.items():
+                    logger.log_scalar(name, value, step=iteration)
+                metrics_csv.append({"epoch": epoch, **metrics})
+                postfix.update(_progress_figures(metrics))
+                progress.set_postfix(postfix, refresh=False)
+                tick = time.perf_counter()
+                if imagined:
+                    continue
+                # ---- Checkpoint (after every real epoch, where a run can resume exactly)
+                progress.update(1)
+                if epoch % cfg.checkpoint_every == 0 or stop.requested:
+                    checkpoint()
+                if stop.requested:
+                    progress.close()
+                    print(f"stopped: saved epoch {epoch} to {checkpoint_path}; continue with resume={checkpoint_path}")
+                    return {"epoch": epoch, "checkpoint": str(checkpoint_path)}
     progress.close()
     path = checkpoint()
 

@@ -70,6 +70,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
 def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
     result = run_train(*TINY, "source=de", "workers=1", "epochs=1", "evaluation.grid=2", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
+    assert "Warning" not in result.stderr  # e.g. TorchRL's auto_register_policy_transforms FutureWarning
     with (tmp_path / "evaluation" / "designs.csv").open() as file:
         designs = {(float(row["length"]), float(row["density"])) for row in csv.DictReader(file)}
     assert designs == {(0.15, 0.4), (0.15, 0.6), (0.2, 0.4), (0.2, 0.6)}  # not just DE's (0.175, 0.5)

@@ -114,6 +114,10 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
     something else is refused, naming the keys, rather than failing in ``load_state_dict``.
     """
     saved = OmegaConf.create(state["config"])
+    kind, saved_kind = OmegaConf.select(cfg, "source.kind"), OmegaConf.select(saved, "source.kind")
+    if saved_kind is not None and kind != saved_kind:
+        raise ValueError(f"cannot resume {str(path)!r}: it trained on source.kind={saved_kind!r} data "
+                         f"(source={OmegaConf.select(saved, 'source.name')}), this run is {kind!r}")
     resumed = cfg.copy()
     taken, conflicts = [], []
     for key in ARCHITECTURE_KEYS:

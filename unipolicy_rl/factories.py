@@ -136,6 +136,15 @@ def make_training_collector(cfg: DictConfig, policy: TensorDictModuleBase, actio
                               frames_per_batch)
     if not model_based:
         return real
+    try:
+        return _model_based_collector(cfg, real, policy, action_dim)
+    except BaseException:
+        real.shutdown()  # its worker processes are running already
+        raise
+
+
+def _model_based_collector(cfg: DictConfig, real: RealEpochCollector, policy: TensorDictModuleBase,
+                           action_dim: int) -> ModelBasedCollector:
     world_model = cfg.world_model
     reference_env = BatchedWalkerEnv(1, **env_kwargs(cfg), full_state=True)
     reference_env.close()  # only its specs are read
