@@ -8,6 +8,7 @@ validation errors so it can pick elites.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -86,18 +87,13 @@ class ModelTrainer:
             raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
         if not self.weight_decay >= 0:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
-        if self.num_threads is not None and not (isinstance(self.num_threads, int) and self.num_threads >= 1):
-            raise ValueError(f"num_threads must be a positive integer or None, got {self.num_threads!r}")
+        check_num_threads(self.num_threads)
 
     def fit(self, model: DynamicsModel, transitions: TensorDictBase,
             generator: torch.Generator | None = None) -> FitReport:
         """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
-        threads = torch.get_num_threads()
-        torch.set_num_threads(self.num_threads or threads)
-        try:
+        with torch_threads(self.num_threads):
             return self._fit(model, transitions, generator)
-        finally:
-            torch.set_num_threads(threads)
 
     def _fit(self, model: DynamicsModel, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
         started = time.perf_counter()
@@ -160,6 +156,22 @@ class ModelTrainer:
         elites = getattr(model, "elites", torch.arange(model.members))
         return FitReport(epochs_run, train_loss, best_error.cpu(), [int(e) for e in elites],
                          int((~has_data).sum()), time.perf_counter() - started)
+
+
+@contextlib.contextmanager
+def torch_threads(count: int | None):
+    """Runs the block with ``count`` torch threads (None: as they are), then restores them."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(count or threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def check_num_threads(count: int | None) -> None:
+    if count is not None and not (isinstance(count, int) and not isinstance(count, bool) and count >= 1):
+        raise ValueError(f"num_threads must be a positive integer or None, got {count!r}")
 
 
 def _member_sets(owners: torch.Tensor | None, rows: torch.Tensor, members: int) -> list[torch.Tensor]:

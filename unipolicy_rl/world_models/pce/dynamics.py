@@ -23,7 +23,7 @@ from unipolicy_rl.world_models.ensemble import DynamicsModel
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
 from unipolicy_rl.world_models.pce.regression import solve_normal_equations
-from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
+from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport, check_num_threads, torch_threads
 
 INTERACTIONS = ("all", "controls")
 
@@ -173,18 +173,13 @@ class PCETrainer:
             raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
         if not self.oversampling >= 1:
             raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
-        if self.num_threads is not None and not (isinstance(self.num_threads, int) and self.num_threads >= 1):
-            raise ValueError(f"num_threads must be a positive integer or None, got {self.num_threads!r}")
+        check_num_threads(self.num_threads)
 
     def fit(self, model: PCEDynamics, transitions: TensorDictBase,
             generator: torch.Generator | None = None) -> FitReport:
         """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
-        threads = torch.get_num_threads()
-        torch.set_num_threads(self.num_threads or threads)
-        try:
+        with torch_threads(self.num_threads):
             return self._fit(model, transitions, generator)
-        finally:
-            torch.set_num_threads(threads)
 
     @torch.no_grad()
     def _fit(self, model: PCEDynamics, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
