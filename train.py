@@ -47,7 +47,7 @@ from unipolicy_rl.factories import (
     make_trpo_updater,
     probe_dimensions,
 )
-from unipolicy_rl.observation_statistics import ObservationStatistics
+from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 from unipolicy_rl.validation import validate_config
 
 
@@ -240,12 +240,12 @@ def main(cfg: DictConfig) -> dict:
                             f"({'; '.join(updater.skip_reasons)}); the last checkpoint, if any, is {checkpoint_path}"
                         )
                 if not imagined:
-                    # The next epoch's policy normalises with statistics that include this epoch.
-                    # The refresh moves the policy by an amount the trust region does not bound: log it.
+                    # The next epoch's policy normalises with statistics that include this epoch;
+                    # the trust region does not bound what the refresh does to the policy: log it.
                     observations = batch.select("observation").reshape(-1)
                     before = policy_parameters(policy, observations)
                     statistics.update(batch["observation"])
-                    statistics.copy_to(normalizer)
+                    refresh_normalizer(statistics, normalizer, (actor, critic), cfg.algo.normalizer_refresh)
                     metrics["train/refresh_kl"] = gaussian_kl(before, policy_parameters(policy, observations))
                 collector.update_policy_weights_()
                 metrics.update(collector.metrics())

@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
 
 from unipolicy_rl.factories import (
     NORMALIZED_OBSERVATION,
@@ -13,7 +14,7 @@ from unipolicy_rl.factories import (
     make_collector,
     make_observation_norm,
 )
-from unipolicy_rl.observation_statistics import MIN_SCALE, ObservationStatistics
+from unipolicy_rl.observation_statistics import MIN_SCALE, ObservationStatistics, refresh_normalizer
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -39,6 +40,49 @@ def test_a_constant_coordinate_gets_the_floor_scale_not_zero():
 def test_bad_observations_are_refused(bad):
     with pytest.raises(ValueError):
         ObservationStatistics(2).update(bad)
+
+
+def _outputs(policy, critic, normalizer, observations):
+    with torch.no_grad():
+        step = policy(TensorDict({"observation": observations.clone()}, batch_size=[len(observations)]))
+        value = critic(normalizer(TensorDict({"observation": observations}, batch_size=[len(observations)])))[
+            "state_value"]
+    return step["loc"], step["scale"], value
+
+
+@pytest.mark.parametrize("refreshes", [1, 3])
+def test_a_preserving_refresh_leaves_policy_and_critic_unchanged_and_a_jump_does_not(refreshes):
+    """Observations far from the identity's (offset, very different scales, one near-constant
+    coordinate at the scale floor): moving the normaliser alone changes the policy a lot; the
+    preserving refresh re-expresses the first layers so nothing the networks output changes."""
+    cfg = tiny_config(workers=1)
+    torch.manual_seed(0)
+    spread = torch.tensor([0.1, 5.0, 1e-5, 2.0] * 4 + [1.0, 0.3])
+    observations = [torch.randn(64, 18) * spread + torch.arange(18.0) for _ in range(refreshes + 1)]
+    runs = {}
+    for mode in ("preserve", "jump"):
+        torch.manual_seed(1)
+        actor, critic = make_actor_critic(cfg, 18, 4)
+        normalizer = make_observation_norm(18)
+        policy = make_collecting_policy(normalizer, actor)
+        statistics = ObservationStatistics(18)
+        changes = []
+        for batch in observations[:refreshes]:
+            before = _outputs(policy, critic, normalizer, observations[-1])
+            statistics.update(batch)
+            refresh_normalizer(statistics, normalizer, (actor, critic), mode)
+            after = _outputs(policy, critic, normalizer, observations[-1])
+            changes.append(max((a - b).abs().max().item() for a, b in zip(after, before, strict=True)))
+        torch.testing.assert_close(normalizer.scale, statistics.scale)  # the normaliser moved in both modes
+        runs[mode] = max(changes)
+    assert runs["preserve"] < 1e-4
+    assert runs["jump"] > 1e-2
+
+
+def test_an_unknown_refresh_mode_is_refused_by_name():
+    normalizer = make_observation_norm(2)
+    with pytest.raises(ValueError, match="'rescale'"):
+        refresh_normalizer(ObservationStatistics(2), normalizer, (), "rescale")
 
 
 def tiny_config(workers: int):

@@ -6,15 +6,28 @@ epochs, as OpenAI baselines' TRPO did. A fixed normaliser keeps the behaviour po
 function per epoch (what the importance ratios and the trust region assume), lets it run
 inside the collector's worker processes with the policy weights, and costs a subtraction and
 a division per step instead of a statistics update in every env step.
+
+A refresh changes what the networks see, so by itself it changes the policy that runs by an
+amount the trust region never bounds (the first refresh jumps from the identity to real
+statistics; a coordinate at the scale floor is multiplied by up to 1/MIN_SCALE).
+:func:`refresh_normalizer` therefore re-expresses the first layer of each network reading the
+normalised observation in the new coordinates, so the refresh leaves every network's output
+exactly as it was and only the parameterisation (what the next natural-gradient step and the
+critic's Adam see) moves to the new statistics.
 """
 
 from __future__ import annotations
 
 import torch
+from torch import nn
 from torchrl.envs.transforms import ObservationNorm
 
 # A coordinate that has not varied yet (or never does) is divided by this, not by ~0.
 MIN_SCALE = 1e-3
+# How a refresh treats the networks behind the normaliser (config ``algo.normalizer_refresh``):
+# "preserve" re-expresses their first layers so their outputs do not change; "jump" only moves
+# the normaliser (OpenAI baselines' TRPO), changing the policy by an unbounded amount.
+REFRESH_MODES = ("preserve", "jump")
 
 
 class ObservationStatistics:
@@ -75,3 +88,39 @@ class ObservationStatistics:
         self.count = int(state["count"])
         self.mean = state["mean"].to(torch.float64).clone()
         self.squared_deviations = state["squared_deviations"].to(torch.float64).clone()
+
+
+def refresh_normalizer(statistics: ObservationStatistics, normalizer: ObservationNorm,
+                       networks: tuple[nn.Module, ...] = (), mode: str = "preserve") -> None:
+    """Moves ``normalizer`` to the current ``statistics``; with ``mode="preserve"`` each of
+    ``networks`` (whose first ``nn.Linear`` reads the normalised observation) is rewritten so
+    its output on any raw observation stays the same.
+
+    With ``z = W (o - m0) / s0 + b`` before and ``(m1, s1)`` the new statistics, the same ``z``
+    is ``W' (o - m1) / s1 + b'`` for ``W' = W diag(s1 / s0)`` and ``b' = b + W (m1 - m0) / s0``.
+    """
+    if mode not in REFRESH_MODES:
+        raise ValueError(f"normalizer_refresh must be one of {REFRESH_MODES}, got {mode!r}")
+    old_loc, old_scale = normalizer.loc.detach().clone(), normalizer.scale.detach().clone()
+    statistics.copy_to(normalizer)
+    if mode == "jump":
+        return
+    new_loc, new_scale = normalizer.loc.detach(), normalizer.scale.detach()
+    with torch.no_grad():
+        for network in networks:
+            layer = _first_linear(network)
+            if layer.in_features != old_loc.numel():
+                raise ValueError(f"the first layer of {type(network).__name__} reads {layer.in_features} inputs, "
+                                 f"the normaliser {old_loc.numel()}")
+            weight = layer.weight.double()
+            shift = ((new_loc - old_loc) / old_scale).double()
+            if layer.bias is not None:
+                layer.bias.add_((weight @ shift).to(layer.bias.dtype))
+            layer.weight.copy_((weight * (new_scale / old_scale).double()).to(layer.weight.dtype))
+
+
+def _first_linear(network: nn.Module) -> nn.Linear:
+    for module in network.modules():
+        if isinstance(module, nn.Linear):
+            return module
+    raise ValueError(f"{type(network).__name__} has no nn.Linear layer to re-express")

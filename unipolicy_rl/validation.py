@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.networks import ACTIVATIONS
+from unipolicy_rl.observation_statistics import REFRESH_MODES
 
 
 def _integer(minimum: int) -> Callable[[object], str | None]:
@@ -75,6 +76,7 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "algo.critic_epochs": POSITIVE,
     "algo.critic_minibatch_size": POSITIVE,
     "algo.max_consecutive_skips": POSITIVE,
+    "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
     "evaluation.every": _integer(0),
     "evaluation.grid": POSITIVE,
     "evaluation.episodes": POSITIVE,
