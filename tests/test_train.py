@@ -25,6 +25,25 @@ def run_train(*overrides: str) -> subprocess.CompletedProcess:
                           text=True, timeout=300, check=False)
 
 
+def run_train_with(patch: str, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """train.py with ``patch`` (Python source) run first: to make the updater fail on purpose."""
+    script = "\n".join(["import runpy, sys", patch, f"sys.argv = ['train.py', *{list(overrides)!r}]",
+                        f"runpy.run_path({str(ROOT / 'train.py')!r}, run_name='__main__')"])
+    return subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          check=False)
+
+
+# Every batch reaches the updater with one NaN reward, as a diverging simulation would send it.
+POISON_REWARDS = """
+from unipolicy_rl.objectives.updater import TRPOUpdater
+_update = TRPOUpdater.update
+def poisoned(self, batch):
+    batch["next", "reward"][..., 0, :] = float("nan")
+    return _update(self, batch)
+TRPOUpdater.update = poisoned
+"""
+
+
 @pytest.mark.parametrize(("source", "length_range"), [("de", [0.175, 0.175]), ("se", [0.15, 0.2])])
 def test_config_composes_for_every_source(source, length_range):
     result = run_train(f"source={source}", "--cfg", "job")
@@ -199,3 +218,26 @@ def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, ma
     assert result.returncode != 0
     assert match in result.stderr
     assert not (tmp_path / "metrics.csv").exists()
+
+
+def test_a_run_whose_updates_keep_being_skipped_stops_with_its_checkpoint(tmp_path):
+    result = run_train_with(POISON_REWARDS, *TINY, "epochs=50", "checkpoint_every=1", "algo.max_consecutive_skips=3",
+                            f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0
+    assert "stopping: 3 updates in a row were skipped" in result.stderr
+    assert "non-finite" in result.stderr
+    assert str(tmp_path / "checkpoint.pt") in result.stderr
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["epoch"] == 2  # the epochs before the stop are kept
+    with (tmp_path / "metrics.csv").open() as file:
+        skips = [float(row["train/consecutive_skips"]) for row in csv.DictReader(file)]
+    assert skips == [1.0, 2.0]
+
+
+def test_a_failure_inside_the_loop_shuts_the_worker_processes_down_instead_of_hanging(tmp_path):
+    """Worker processes of a MultiSyncCollector keep the interpreter alive on exit unless shut down."""
+    fail = ("from unipolicy_rl.objectives.updater import TRPOUpdater\n"
+            "def fail(self, batch):\n    raise RuntimeError('injected failure')\n"
+            "TRPOUpdater.update = fail")
+    result = run_train_with(fail, *TINY, "workers=2", "epochs=5", f"hydra.run.dir={tmp_path}", timeout=120)
+    assert result.returncode != 0
+    assert "injected failure" in result.stderr

@@ -17,7 +17,12 @@ from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.collectors import ModelBasedCollector, RealEpochCollector, truncate_last_step
+from unipolicy_rl.collectors import (
+    ModelBasedCollector,
+    RealEpochCollector,
+    ShutdownCompleteMultiSyncCollector,
+    truncate_last_step,
+)
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
@@ -94,7 +99,7 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     if cfg.workers == 1:
         return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
     make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
-    return MultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
+    return ShutdownCompleteMultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
 
 
 def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleBase) -> TensorDictSequential:

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.weight_update import MultiProcessWeightSyncScheme
 
 # Every batch a collector of this package yields says where its data came from.
 DATA_SOURCE = "data_source"
@@ -90,6 +91,29 @@ class RealEpochCollector:
     def load_state_dict(self, state: dict) -> None:
         self.epoch = int(state["epoch"])
         self.real_env_steps = int(state["real_env_steps"])
+
+
+class ShutdownCompleteMultiSyncCollector(MultiSyncCollector):
+    """TorchRL's ``MultiSyncCollector`` whose ``shutdown`` also shuts its weight-sync scheme down.
+
+    TorchRL 0.14 leaves that to the scheme's ``__del__``. When a run fails, the exception's
+    traceback keeps the collector alive until the interpreter exits, the ``__del__`` then runs
+    during finalisation, starts a queue thread, and the process hangs forever after printing
+    its error. The scheme is the one TorchRL would make by default, made here so it can be
+    closed with the collector.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        schemes = kwargs.setdefault("weight_sync_schemes", {"policy": MultiProcessWeightSyncScheme()})
+        super().__init__(*args, **kwargs)
+        self._schemes_to_close = dict(schemes)
+
+    def shutdown(self, *args, **kwargs) -> None:
+        try:
+            super().shutdown(*args, **kwargs)
+        finally:
+            for scheme in self._schemes_to_close.values():
+                scheme.shutdown()
 
 
 def truncate_last_step(batch: TensorDictBase) -> TensorDictBase:
