@@ -36,7 +36,8 @@ from unipolicy_rl.checkpoint import (
 )
 from unipolicy_rl.collectors import is_imagined
 from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.evaluation import evaluate_on_designs, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
+from unipolicy_rl.evaluation import evaluate_on_designs, format_summary, plot_heatmaps, summarise, write_csv
 from unipolicy_rl.evaluation.plots import plot_training_curve
 from unipolicy_rl.factories import (
     env_kwargs,
@@ -54,12 +55,12 @@ from unipolicy_rl.validation import validate_config
 def episode_metrics(batch, control_period: float, episode_length: int) -> dict[str, float]:
     """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended."""
     done = batch["next", "done"].squeeze(-1)
-    displacement = batch["next", "observation"][..., 0][done]
+    displacement = forward_displacement(batch["next", "observation"])[done].mean().item()
     return {
         "train/episode_reward": batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
         "train/reward_per_step": batch["next", "reward"].mean().item(),
-        "train/forward_displacement": displacement.mean().item(),
-        "train/forward_speed": displacement.mean().item() / (episode_length * control_period),
+        "train/forward_displacement": displacement,
+        "train/forward_speed": mean_forward_speed(displacement, episode_length, control_period),
         "train/physics_faults": batch["next", "physics_fault"].sum().item(),
     }
 
@@ -109,6 +110,12 @@ class MetricsCSV:
             csv.DictWriter(file, fieldnames=self.columns).writerow(row)
 
 
+def evaluation_designs(cfg) -> list:
+    """The evaluation grid: ``evaluation.grid`` designs per axis over the evaluation ranges."""
+    grid = cfg.evaluation
+    return DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+
+
 def grid_metrics(policy, cfg, designs, prefix: str = "eval/") -> dict[str, float]:
     """The deterministic policy on the evaluation grid in the real env: how far the grid walks."""
     results = evaluate_on_designs(policy, env_kwargs(cfg), designs, episodes_per_design=1, seed=cfg.seed)
@@ -125,9 +132,7 @@ def evaluate_final(cfg, checkpoint_path: Path, run_dir: Path, metrics_csv: Path 
     from unipolicy_rl.checkpoint import load_policy
 
     loaded = load_policy(checkpoint_path)
-    grid = cfg.evaluation
-    designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
-    results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), designs,
+    results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), evaluation_designs(cfg),
                                   episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
     out = run_dir / "evaluation"
     write_csv(results, out / "designs.csv")
@@ -204,7 +209,7 @@ def main(cfg: DictConfig) -> dict:
         checkpoint_path = run_dir / "checkpoint.pt"
         metrics_csv = MetricsCSV(run_dir / "metrics.csv")
         grid = cfg.evaluation
-        designs = DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+        designs = evaluation_designs(cfg)
         episode_length = cfg.robot.episode_length
         control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
         config = OmegaConf.to_container(cfg, resolve=True)
@@ -277,12 +282,8 @@ def main(cfg: DictConfig) -> dict:
 
     summary = evaluate_final(cfg, path, run_dir, metrics_csv.path)
     print(f"saved policy: {path}")
-    print(
-        f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}: mean forward displacement "
-        f"{summary['mean_forward_displacement']:.2f} m (min {summary['min_forward_displacement']:.2f} m), "
-        f"mean episode reward {summary['mean_episode_reward']:.1f}, "
-        f"{summary['walking_designs']}/{summary['designs']} designs walk >= 1 m"
-    )
+    print(f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}:")
+    print(format_summary(summary))
     return {"epoch": collector.epoch, "checkpoint": str(path), **summary}
 
 

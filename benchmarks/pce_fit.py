@@ -29,10 +29,11 @@ from pce_data import collect
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import RobotSettings
+from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.world_models import PCEDynamics, PCETrainer, StateLayout
 from unipolicy_rl.world_models.pce import ThesisMEPCE
 
-RANGES = ((0.15, 0.20), (0.4, 0.6))
+RANGES = (SE_LENGTH_RANGE, SE_DENSITY_RANGE)
 STEPS = (6, 10, 25, 100)
 
 

@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 
 from unipolicy_rl.checkpoint import load_checkpoint, load_policy, save_checkpoint
 from unipolicy_rl.envs import WalkerEnv
+from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["episodes_per_epoch=2", "robot.episode_length=10", "evaluation.grid=1", "progress_bar=false",
@@ -52,6 +53,18 @@ def test_config_composes_for_every_source(source, length_range):
     assert cfg.source.name == source
     assert list(cfg.design.length_range) == length_range
     assert cfg.epochs == 600 and cfg.episodes_per_epoch == 10 and cfg.algo.max_kl == 0.01
+
+
+def test_the_design_space_is_written_once_and_agrees_with_the_code():
+    """SE's ranges, the evaluation grid's and the library's defaults are one fact."""
+    result = run_train("source=se", "--cfg", "job")
+    cfg = OmegaConf.create(result.stdout)
+    expected = [list(SE_LENGTH_RANGE), list(SE_DENSITY_RANGE)]
+    assert [list(cfg.design_space.length_range), list(cfg.design_space.density_range)] == expected
+    assert [list(cfg.design.length_range), list(cfg.design.density_range)] == expected
+    assert [list(cfg.evaluation.length_range), list(cfg.evaluation.density_range)] == expected
+    moved = OmegaConf.create(run_train("source=se", "design_space.length_range=[0.1,0.3]", "--cfg", "job").stdout)
+    assert list(moved.design.length_range) == list(moved.evaluation.length_range) == [0.1, 0.3]
 
 
 def test_unknown_override_is_a_clear_error():

@@ -16,7 +16,15 @@ from pathlib import Path
 import torch
 
 from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.evaluation import DesignResult, evaluate_on_designs, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
+from unipolicy_rl.evaluation import (
+    evaluate_on_designs,
+    format_summary,
+    format_table,
+    plot_heatmaps,
+    summarise,
+    write_csv,
+)
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -32,44 +40,14 @@ def make_parser() -> argparse.ArgumentParser:
                              "repeats the same episode (use more with --stochastic)")
     parser.add_argument("--out", type=Path, help="output folder; default: evaluation/ next to the checkpoint")
     parser.add_argument("--seed", type=int, default=0, help="seed for the env and for stochastic actions")
-    parser.add_argument("--length-range", type=float, nargs=2, default=(0.15, 0.20), metavar=("LOW", "HIGH"),
-                        help="link length range l (m); default the SE range 0.15 0.20")
-    parser.add_argument("--density-range", type=float, nargs=2, default=(0.4, 0.6), metavar=("LOW", "HIGH"),
-                        help="link density range rho (kg/m); default the SE range 0.4 0.6")
+    parser.add_argument("--length-range", type=float, nargs=2, default=SE_LENGTH_RANGE, metavar=("LOW", "HIGH"),
+                        help="link length range l (m); default the SE range %(default)s")
+    parser.add_argument("--density-range", type=float, nargs=2, default=SE_DENSITY_RANGE, metavar=("LOW", "HIGH"),
+                        help="link density range rho (kg/m); default the SE range %(default)s")
     parser.add_argument("--num-robots", type=int, help="robots stepped together; default min(episodes in all, 32)")
     parser.add_argument("--stochastic", action="store_true",
                         help="sample actions instead of taking the policy's deterministic ones")
     return parser
-
-
-def format_table(results: Sequence[DesignResult]) -> str:
-    """One line per design: the numbers a person reads first."""
-    lines = [f"{'l (m)':>7} {'rho':>6} {'reward':>10} {'disp (m)':>10} {'+-':>6} {'speed (m/s)':>11} {'faults':>6}"]
-    for r in results:
-        lines.append(
-            f"{r.length:7.3f} {r.density:6.3f} {r.mean_episode_reward:10.2f} {r.mean_forward_displacement:10.3f} "
-            f"{r.std_forward_displacement:6.3f} {r.mean_forward_speed:11.3f} {r.physics_faults:6d}"
-        )
-    return "\n".join(lines)
-
-
-def format_summary(summary: dict) -> str:
-    return "\n".join(
-        [
-            f"designs {summary['designs']}, episodes {summary['episodes']}, physics faults {summary['physics_faults']}",
-            f"forward displacement (m): mean {summary['mean_forward_displacement']:.3f}, "
-            f"min {summary['min_forward_displacement']:.3f}, max {summary['max_forward_displacement']:.3f}; "
-            f"mean speed {summary['mean_forward_speed']:.3f} m/s",
-            f"episode reward: mean {summary['mean_episode_reward']:.2f}, min {summary['min_episode_reward']:.2f}",
-            f"designs walking >= {summary['walking_displacement']:g} m: "
-            f"{summary['walking_designs']}/{summary['designs']}; "
-            f"worst design (l, rho) = {_pair(summary['worst_design'])}, best = {_pair(summary['best_design'])}",
-        ]
-    )
-
-
-def _pair(design: tuple[float, float]) -> str:
-    return f"({design[0]:.3f}, {design[1]:.3f})"
 
 
 def check_arguments(args: argparse.Namespace) -> None:

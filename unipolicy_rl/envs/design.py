@@ -7,6 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The thesis' uncertain design: l ~ U(0.15, 0.20) m and rho ~ U(0.4, 0.6) kg/m. SE trains on
+# it and the evaluation grid covers it. conf/config.yaml's ``design_space`` holds the same
+# numbers for Hydra runs (tests/test_train.py checks they agree).
+SE_LENGTH_RANGE = (0.15, 0.20)
+SE_DENSITY_RANGE = (0.4, 0.6)
+
 
 def _check_positive(name: str, value: float) -> None:
     if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -30,11 +36,11 @@ class DesignDistribution:
     """Independent uniform length and density; a zero-width range is a deterministic design.
 
     DE is ``DesignDistribution.fixed(0.175, 0.5)``; SE is the default, the thesis ranges
-    l ~ U(0.15, 0.20) and rho ~ U(0.4, 0.6).
+    :data:`SE_LENGTH_RANGE` and :data:`SE_DENSITY_RANGE`.
     """
 
-    length_range: tuple[float, float] = (0.15, 0.20)
-    density_range: tuple[float, float] = (0.4, 0.6)
+    length_range: tuple[float, float] = SE_LENGTH_RANGE
+    density_range: tuple[float, float] = SE_DENSITY_RANGE
 
     def __post_init__(self) -> None:
         for name, (low, high) in (("length", self.length_range), ("density", self.density_range)):

@@ -29,6 +29,17 @@ class RewardWeights:
             raise ValueError(f"w_x_dot must be >= 0 (it rewards forward speed), got {self.w_x_dot!r}")
 
 
+def forward_displacement(observation):
+    """How far the robot has walked (m): its base's x, the coordinate the reward pays for.
+    Every episode starts at x = 0, so the x of an episode's last observation is its displacement."""
+    return observation[..., BASE_X]
+
+
+def mean_forward_speed(displacement, steps, control_period: float):
+    """Mean forward speed (m/s) of an episode of ``steps`` control steps."""
+    return displacement / (steps * control_period)
+
+
 def walking_reward(observation, weights: RewardWeights = RewardWeights()):
     """Reward of each observation in a batch (numpy array or torch tensor, last dim = features)."""
     x = observation[..., BASE_X]

@@ -9,7 +9,7 @@ import numpy as np
 import pybullet
 
 from unipolicy_rl.envs.design import Design, DesignDistribution
-from unipolicy_rl.envs.reward import RewardWeights, walking_reward
+from unipolicy_rl.envs.reward import RewardWeights, forward_displacement, mean_forward_speed, walking_reward
 from unipolicy_rl.envs.simulation import EXPLOSION_LIMIT, PhysicsSettings, RobotSettings, WalkerSimulation
 
 
@@ -76,13 +76,14 @@ class WalkerEnv(gymnasium.Env):
             raw = np.concatenate([raw, (design.length, design.density)])
         return raw.astype(np.float32)
 
-    def _info(self, fault: bool = False) -> dict:
-        displacement = float(self.simulation.base_position()[0])
-        elapsed = self._steps * self.simulation.physics.control_period
+    def _info(self, raw: np.ndarray, fault: bool = False) -> dict:
+        displacement = float(forward_displacement(raw))
         return {
             "design": self.simulation.design,
             "forward_displacement": displacement,
-            "mean_forward_speed": displacement / elapsed if elapsed > 0 else 0.0,
+            "mean_forward_speed": (float(mean_forward_speed(displacement, self._steps,
+                                                            self.simulation.physics.control_period))
+                                   if self._steps else 0.0),
             "physics_fault": fault,
         }
 
@@ -90,7 +91,8 @@ class WalkerEnv(gymnasium.Env):
         super().reset(seed=seed)
         design = design_from_options(options) or self.design_distribution.sample(self.np_random)
         self._steps = 0
-        return self._observe(self.simulation.reset(design)), self._info()
+        raw = self.simulation.reset(design)
+        return self._observe(raw), self._info(raw)
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float64)
@@ -103,7 +105,7 @@ class WalkerEnv(gymnasium.Env):
         observation = self._observe(raw)
         reward = float(walking_reward(raw, self.reward_weights))
         truncated = fault or self._steps >= self.episode_length
-        return observation, reward, False, truncated, self._info(fault)
+        return observation, reward, False, truncated, self._info(raw, fault)
 
     def render(self):
         if self.render_mode != "rgb_array":

@@ -19,7 +19,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.envs import BatchedWalkerEnv, Design
-from unipolicy_rl.envs.reward import BASE_X
+from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
 
 # A design "walks" when its base gets at least this far forward in one episode (m).
 WALKING_DISPLACEMENT = 1.0
@@ -89,12 +89,12 @@ def episode_outcomes(rollout: TensorDictBase, control_period: float) -> dict[str
     in_episode = steps_taken <= last.unsqueeze(-1)
     rows = torch.arange(done.shape[0], device=done.device)
     reward = (rollout["next", "reward"].squeeze(-1) * in_episode).sum(-1)
-    displacement = rollout["next", "observation"][rows, last, BASE_X]
+    displacement = forward_displacement(rollout["next", "observation"][rows, last])
     steps = last + 1
     return {
         "episode_reward": reward.double().cpu(),
         "forward_displacement": displacement.double().cpu(),
-        "forward_speed": (displacement.double() / (steps.double() * control_period)).cpu(),
+        "forward_speed": mean_forward_speed(displacement.double(), steps.double(), control_period).cpu(),
         "steps": steps.cpu(),
         "physics_fault": rollout["next", "physics_fault"].squeeze(-1)[rows, last].cpu(),
     }
@@ -238,3 +238,35 @@ def summarise(results: Sequence[DesignResult], walking_displacement: float = WAL
 
 def _mean(values: Sequence[float]) -> float:
     return math.fsum(values) / len(values)
+
+
+# -- text ------------------------------------------------------------------------------
+def format_table(results: Sequence[DesignResult]) -> str:
+    """One line per design: the numbers a person reads first."""
+    lines = [f"{'l (m)':>7} {'rho':>6} {'reward':>10} {'disp (m)':>10} {'+-':>6} {'speed (m/s)':>11} {'faults':>6}"]
+    for r in results:
+        lines.append(
+            f"{r.length:7.3f} {r.density:6.3f} {r.mean_episode_reward:10.2f} {r.mean_forward_displacement:10.3f} "
+            f"{r.std_forward_displacement:6.3f} {r.mean_forward_speed:11.3f} {r.physics_faults:6d}"
+        )
+    return "\n".join(lines)
+
+
+def format_summary(summary: dict) -> str:
+    """What a finished training run and ``python -m unipolicy_rl.evaluate`` print about a grid."""
+    return "\n".join(
+        [
+            f"designs {summary['designs']}, episodes {summary['episodes']}, physics faults {summary['physics_faults']}",
+            f"forward displacement (m): mean {summary['mean_forward_displacement']:.3f}, "
+            f"min {summary['min_forward_displacement']:.3f}, max {summary['max_forward_displacement']:.3f}; "
+            f"mean speed {summary['mean_forward_speed']:.3f} m/s",
+            f"episode reward: mean {summary['mean_episode_reward']:.2f}, min {summary['min_episode_reward']:.2f}",
+            f"designs walking >= {summary['walking_displacement']:g} m: "
+            f"{summary['walking_designs']}/{summary['designs']}; "
+            f"worst design (l, rho) = {_pair(summary['worst_design'])}, best = {_pair(summary['best_design'])}",
+        ]
+    )
+
+
+def _pair(design: tuple[float, float]) -> str:
+    return f"({design[0]:.3f}, {design[1]:.3f})"
