@@ -61,8 +61,24 @@ def plot_curves(curves: Mapping[str, Mapping[str, Sequence[Series]]], axis: str,
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     axes[0].set_title("mean over seeds, shaded: 95% confidence band of the mean")
-    axes[-1].set_xlabel(f"{X_LABELS[axis]} ({unit})" if axis == "seconds" else X_LABELS[axis])
+    xlabel = f"{X_LABELS[axis]} ({unit})" if axis == "seconds" else X_LABELS[axis]
+    if axis == "steps" and _spans_decades(curves):
+        # A model-based source walks on a small share of a model-free one's real steps: on a
+        # linear axis its whole curve would sit in the first few pixels.
+        axes[-1].set_xscale("log")
+        xlabel += " (log scale)"
+    axes[-1].set_xlabel(xlabel)
     return _save(figure, path)
+
+
+def _spans_decades(curves: Mapping[str, Mapping[str, Sequence[Series]]], ratio: float = 5.0) -> bool:
+    """Whether one source's runs end ``ratio`` times further along in real env steps than another's."""
+    ends = []
+    for by_column in curves.values():
+        last = [float(np.nanmax(s.steps)) for runs in by_column.values() for s in runs if np.isfinite(s.steps).any()]
+        if last:
+            ends.append(max(last))
+    return len(ends) > 1 and min(ends) > 0 and max(ends) / min(ends) >= ratio
 
 
 @dataclass

@@ -163,17 +163,37 @@ def load_run(path: Path, name: str) -> Run:
     return run
 
 
+def _resolved(config) -> dict:
+    """The config as plain values, every interpolation resolved that can be outside Hydra; one
+    that only Hydra can resolve (``${hydra:runtime.output_dir}`` in the logger) stays as written."""
+    try:
+        return OmegaConf.to_container(config, resolve=True)
+    except Exception:  # any resolution failure: fall back to resolving leaf by leaf
+        pass
+
+    def walk(value, key: str):
+        if isinstance(value, dict):
+            return {name: walk(item, f"{key}.{name}" if key else str(name)) for name, item in value.items()}
+        if isinstance(value, list):
+            return [walk(item, f"{key}[{index}]") for index, item in enumerate(value)]
+        if isinstance(value, str) and "${" in value:
+            try:
+                selected = OmegaConf.select(config, key, throw_on_resolution_failure=True)
+            except Exception:  # only Hydra can resolve it
+                return value
+            return OmegaConf.to_container(selected, resolve=True) if OmegaConf.is_config(selected) else selected
+        return value
+
+    return walk(OmegaConf.to_container(config, resolve=False), "")
+
+
 def _read_config(run: Run) -> None:
     path = run.path / CONFIG
     if not path.is_file():
         run.problems.append(f"no {CONFIG}: cannot tell its source, seed or robot, so it is left out")
         return
     try:
-        config = OmegaConf.load(path)
-        try:
-            run.config = OmegaConf.to_container(config, resolve=True)
-        except Exception:  # an interpolation only Hydra can resolve: the values are still usable
-            run.config = OmegaConf.to_container(config, resolve=False)
+        run.config = _resolved(OmegaConf.load(path))
         if not isinstance(run.config, dict) or run.source is None:
             raise ValueError("no source.name in it")
     except Exception as error:  # a YAML error of any kind: one line, not a traceback
