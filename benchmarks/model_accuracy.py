@@ -49,6 +49,7 @@ from env_throughput import raw_pybullet
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import PhysicsSettings, RobotSettings
 from unipolicy_rl.world_models import ModelTrainer, StateLayout
+from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, normalised_mean_difference, relative_error
 from unipolicy_rl.world_models.imagined import PredictNextState
 
 matplotlib.use("Agg")
@@ -56,7 +57,7 @@ from matplotlib import pyplot as plt  # noqa: E402 (after choosing the backend)
 
 ROOT = Path(__file__).resolve().parent.parent
 X, X_DOT = 0, 3  # base forward position and velocity in the observation
-FLOORS = {X: 0.01, X_DOT: 0.01}  # 1 cm, 1 cm/s
+FLOORS = {X: THESIS_FLOOR, X_DOT: THESIS_FLOOR}  # 1 cm, 1 cm/s
 
 
 def open_loop(model, states: torch.Tensor, actions: torch.Tensor, designs: torch.Tensor, steps: int,
@@ -96,11 +97,13 @@ def metrics(layout: StateLayout, predicted: torch.Tensor, true: torch.Tensor, de
     """NMD and relative errors of ``predicted`` against ``true`` (``[E, T, S]`` model states)."""
     design = design[:, None].expand(-1, true.shape[1], -1)
     predicted, true = layout.observation(predicted, design), layout.observation(true, design)
-    nmd = (predicted.mean(0) - true.mean(0)).abs() / true.mean(0).abs()
+    nmd = normalised_mean_difference(true, predicted)
     out = {"nmd": float(nmd.mean()), "nmd_median": float(nmd.median())}
     for name, column in (("x", X), ("x_dot", X_DOT)):
         error = (predicted[..., column] - true[..., column]).abs()
-        out[f"relative_{name}"] = float((error / true[..., column].abs().clamp_min(FLOORS[column])).mean())
+        # Every step has the same episodes, so the mean of the per-step means is the overall mean.
+        out[f"relative_{name}"] = float(relative_error(true[..., [column]], predicted[..., [column]],
+                                                       FLOORS[column]).mean())
         out[f"absolute_{name}"] = float(error.mean()) * 100
     return out
 

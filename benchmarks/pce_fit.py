@@ -31,15 +31,11 @@ from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import RobotSettings
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.world_models import PCEDynamics, PCETrainer, StateLayout
+from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, relative_error
 from unipolicy_rl.world_models.pce import ThesisMEPCE
 
 RANGES = (SE_LENGTH_RANGE, SE_DENSITY_RANGE)
 STEPS = (6, 10, 25, 100)
-
-
-def relative_error(predicted: torch.Tensor, truth: torch.Tensor, floor: float) -> torch.Tensor:
-    """Thesis eq. 5.2 per step: mean |s - s_hat| / max(|s|, floor) over episodes."""
-    return ((predicted - truth).abs() / truth.abs().clamp_min(floor)).mean(0)
 
 
 def timing(threads: int) -> None:
@@ -108,7 +104,7 @@ def accuracy(episodes: int) -> None:
     print("| model | fit s | x: " + " | ".join(f"{s}" for s in STEPS) + " | vx: " +
           " | ".join(f"{s}" for s in STEPS) + " |")
     for label, (x, vx, seconds) in results.items():
-        ex, ev = relative_error(x, truth[..., 0], 0.01), relative_error(vx, truth[..., 3], 0.01)
+        ex, ev = relative_error(truth[..., [0, 3]], torch.stack([x, vx], -1), THESIS_FLOOR).unbind(-1)
         print(f"| {label} | {seconds:.1f} | " + " | ".join(f"{float(ex[s - 1]):.2f}" for s in STEPS) + " | " +
               " | ".join(f"{float(ev[s - 1]):.2f}" for s in STEPS) + " |")
 

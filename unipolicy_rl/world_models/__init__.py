@@ -2,8 +2,16 @@
 
 A :class:`DynamicsModel` predicts; :class:`ModelTrainer` fits it; :func:`make_world_model`
 composes it into TorchRL's ``WorldModel``; :class:`ImaginedWalkerEnv` rolls policies through it.
+:mod:`~unipolicy_rl.world_models.accuracy` measures its trajectories against real ones.
 """
 
+from unipolicy_rl.world_models.accuracy import (
+    band,
+    jensen_shannon,
+    normalised_mean_difference,
+    plot_bands,
+    relative_error,
+)
 from unipolicy_rl.world_models.ensemble import CellEnsemble, DynamicsModel, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.layout import StateLayout
@@ -20,6 +28,11 @@ __all__ = [
     "PCEDynamics",
     "PCETrainer",
     "StateLayout",
+    "band",
+    "jensen_shannon",
     "make_world_model",
     "member_returns",
+    "normalised_mean_difference",
+    "plot_bands",
+    "relative_error",
 ]
