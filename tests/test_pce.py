@@ -194,6 +194,27 @@ def test_the_one_step_pce_fits_a_toy_dynamics_to_a_stated_held_out_error():
     assert int(small.fitted_terms) == 40 and (small.coefficients[:, 40:] == 0).all()
 
 
+def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_positions_move_on():
+    from test_world_models import TOY, toy_transitions
+
+    from unipolicy_rl.world_models import PCEDynamics, PCETrainer
+
+    model = PCEDynamics(TOY, action_dim=2, order=3, members=1, margin=0.1)
+    data = toy_transitions(2000, 0)
+    PCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+    velocities = torch.tensor(TOY.velocity_columns)
+    seen = data["next_state"][:, velocities]
+    low, high = seen.amin(0), seen.amax(0)
+    state = data["state"][:200].clone()
+    member = torch.zeros(200, dtype=torch.long)
+    start = state.clone()
+    for _ in range(200):  # the same extreme action every step: drives the toy's rates one way
+        state = model.predict(state, torch.ones(200, 2), data["design"][:200], member)
+    margin = 0.1 * (high - low)
+    assert (state[:, velocities] >= low - margin - 1e-5).all() and (state[:, velocities] <= high + margin + 1e-5).all()
+    assert ((state - start)[:, :2].abs() > high.abs().max()).any()  # positions are free to leave it
+
+
 def test_the_one_step_pce_sparse_basis_keeps_only_control_interactions():
     from test_world_models import TOY
 

@@ -36,8 +36,11 @@ class PCEDynamics(DynamicsModel):
     input measure). At prediction an input outside its range is clamped to it: a polynomial
     extrapolates badly, and an imagined state may drift a little past the data. For the same
     reason the predicted change is clamped to the range of changes in the training data (with
-    the same margin): one control step never moves the robot further than the data ever saw,
-    so an imagined rollout cannot run away through the polynomial's tails.
+    the same margin): one control step never moves the robot further than the data ever saw.
+    Changes within range can still add up, step after step, to velocities no real step ever
+    had (the joint rates then pass the env's explosion limit and the branch ends as a fault), so
+    the predicted velocities are also clamped to the data's range of velocities, widened by the
+    same margin. Positions are not: the robot is meant to walk out of the data's range.
 
     Why this basis: the inputs are many (96 features, 4 actions and 2 design values for the
     ``full`` state), and a total-degree basis of order 3 in 102 inputs has 187,460 terms. A
@@ -98,6 +101,8 @@ class PCEDynamics(DynamicsModel):
         self.register_buffer("high", torch.ones(input_size))
         self.register_buffer("change_low", -torch.full((layout.size,), math.inf))
         self.register_buffer("change_high", torch.full((layout.size,), math.inf))
+        self.register_buffer("state_low", -torch.full((layout.size,), math.inf))  # velocities only; else -inf
+        self.register_buffer("state_high", torch.full((layout.size,), math.inf))
         self.register_buffer("coefficients", torch.zeros(members, self.basis.terms, layout.size))
         self.register_buffer("residual_std", torch.zeros(members, layout.size))
         self.register_buffer("elites", torch.arange(members))
@@ -140,7 +145,8 @@ class PCEDynamics(DynamicsModel):
         if not deterministic:
             change = change + torch.randn_like(change) * self.residual_std[member]
         change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
-        return state + change.reshape(state.shape)
+        next_state = state + change.reshape(state.shape)
+        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
 
 
 @dataclass(frozen=True)
@@ -199,6 +205,10 @@ class PCETrainer:
         low, high = targets[train].amin(0), targets[train].amax(0)
         model.change_low.copy_(low - model.margin * (high - low))
         model.change_high.copy_(high + model.margin * (high - low))
+        velocities = torch.tensor(model.layout.velocity_columns, dtype=torch.long, device=device)
+        low, high = next_state[train][:, velocities].amin(0), next_state[train][:, velocities].amax(0)
+        model.state_low[velocities] = low - model.margin * (high - low)
+        model.state_high[velocities] = high + model.margin * (high - low)
         # Poisson(1) bootstrap weights; member 0 fits the plain sample.
         weights = torch.poisson(torch.ones(model.members, len(train)), generator=generator).to(device)
         weights[0] = 1.0
