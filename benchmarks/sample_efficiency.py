@@ -4,7 +4,8 @@ Reads finished or running training runs (any mix of sweeps and run folders) and,
 the first periodic real-env grid evaluation that walks the grid (grid mean >= 3 m, every
 design >= 1 m; :func:`unipolicy_rl.evaluation.walks_the_grid`). Prints each run, the median
 per source, and the ratio of each source's median to the baseline's (SE-TRPO by default),
-measured over the same runs.
+measured over the same runs. A run that has not walked (yet) counts as taking more steps than any
+that did, so a median is only given when at least half the runs of a source walked.
 
     python train.py -m source=se seed=0,1,2 hydra.sweep.dir=runs/se
     python train.py -m source=moe seed=0,1,2 epochs=30 hydra.sweep.dir=runs/moe
@@ -18,6 +19,7 @@ says how fast it was).
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 from collections import defaultdict
 from pathlib import Path
@@ -53,14 +55,18 @@ def main(argv: list[str] | None = None) -> dict:
     medians = {}
     for label in sorted(runs_per_source):
         values = reached.get(label, [])
-        if not values:
-            print(f"{label}: no run walked the grid ({runs_per_source[label]} runs)")
+        # A run that never walked took more steps than any that did: it counts as infinitely
+        # many, so the median says "not reached" when fewer than half the runs walked.
+        missing = [(math.inf, math.inf)] * (runs_per_source[label] - len(values))
+        steps = statistics.median(v[0] for v in values + missing)
+        seconds = statistics.median(v[1] for v in values + missing)
+        walked = f"{len(values)} of {runs_per_source[label]} runs walked"
+        if math.isinf(steps):
+            print(f"{label}: median not reached ({walked})")
             continue
-        steps = statistics.median(v[0] for v in values)
-        seconds = statistics.median(v[1] for v in values)
         medians[label] = (steps, seconds)
-        print(f"{label}: median {steps:,.0f} real env steps, {seconds:.0f} s wall "
-              f"({len(values)} of {runs_per_source[label]} runs walked)")
+        rest = "; the rest count as more than any that walked" if missing else ""
+        print(f"{label}: median {steps:,.0f} real env steps, {seconds:.0f} s wall ({walked}{rest})")
     baseline = medians.get(args.baseline)
     if baseline:
         for label, (steps, seconds) in medians.items():
