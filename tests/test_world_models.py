@@ -245,7 +245,7 @@ def _tiny_collector(stopping: StoppingRule, epochs: int = 2):
     torch.manual_seed(0)
     policy = make_actor(18, 4)
     inner = Collector(partial(training_env, 2, episode_length=None, full_state=True), policy, frames_per_batch=20,
-                      total_frames=20 * epochs, postproc=truncate_last_step)
+                      total_frames=20 * epochs, postproc=truncate_last_step, auto_register_policy_transforms=False)
     real = RealEpochCollector(inner, seed=0, epochs=epochs, frames_per_batch=20)
     model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(16,))
     reference = BatchedWalkerEnv(1, full_state=True)

@@ -107,10 +107,11 @@ def joint_targets(actions: np.ndarray, action_range: float) -> np.ndarray:
     return action_range * np.clip(actions, -1.0, 1.0)
 
 
-def healthy_rows(observations: np.ndarray) -> np.ndarray:
-    """True for each observation (last axis) that is finite and within the explosion limit."""
+def healthy_rows(observations):
+    """True for each observation (last axis) that is finite and within the explosion limit; a
+    numpy array (the real env) or a torch tensor (a world model's prediction) of the same type."""
     # One comparison covers both: NaN and inf compare False.
-    return (np.abs(observations) < EXPLOSION_LIMIT).all(axis=-1)
+    return (abs(observations) < EXPLOSION_LIMIT).all(-1)
 
 
 class WalkerSimulation:
