@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
 from collections import defaultdict
 from pathlib import Path
 
-from unipolicy_rl.report.metrics import first_walking
+from unipolicy_rl.report.metrics import first_walking, median_to_walk
 from unipolicy_rl.report.runs import discover, load_run, run_names
 
 
@@ -55,17 +54,15 @@ def main(argv: list[str] | None = None) -> dict:
     medians = {}
     for label in sorted(runs_per_source):
         values = reached.get(label, [])
-        # A run that never walked took more steps than any that did: it counts as infinitely
-        # many, so the median says "not reached" when fewer than half the runs walked.
-        missing = [(math.inf, math.inf)] * (runs_per_source[label] - len(values))
-        steps = statistics.median(v[0] for v in values + missing)
-        seconds = statistics.median(v[1] for v in values + missing)
-        walked = f"{len(values)} of {runs_per_source[label]} runs walked"
+        runs = runs_per_source[label]
+        steps = median_to_walk([v[0] for v in values], runs)
+        seconds = median_to_walk([v[1] for v in values], runs)
+        walked = f"{len(values)} of {runs} runs walked"
         if math.isinf(steps):
             print(f"{label}: median not reached ({walked})")
             continue
         medians[label] = (steps, seconds)
-        rest = "; the rest count as more than any that walked" if missing else ""
+        rest = "; the rest count as more than any that walked" if len(values) < runs else ""
         print(f"{label}: median {steps:,.0f} real env steps, {seconds:.0f} s wall ({walked}{rest})")
     baseline = medians.get(args.baseline)
     if baseline:

@@ -20,7 +20,14 @@ from unipolicy_rl.report.__main__ import main
 from unipolicy_rl.report.bands import T_975, seed_band
 from unipolicy_rl.report.grids import best_achievable, relative_performance, seed_mean
 from unipolicy_rl.report.groups import group_runs
-from unipolicy_rl.report.metrics import DISPLACEMENT, REWARD, elapsed_seconds, real_env_steps, series
+from unipolicy_rl.report.metrics import (
+    DISPLACEMENT,
+    REWARD,
+    elapsed_seconds,
+    median_to_walk,
+    real_env_steps,
+    series,
+)
 from unipolicy_rl.report.runs import Run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -217,3 +224,11 @@ def test_groups_are_named_by_what_sets_them_apart():
     groups = group_runs(runs)
     assert {label: len(members) for label, members in groups.items()} == {
         "de": 1, "se algo.max_kl=0.01": 2, "se algo.max_kl=0.02": 2}
+
+
+def test_a_run_that_never_walked_counts_as_longer_than_any_that_did():
+    assert median_to_walk([120_000.0, 260_000.0], runs=3) == 260_000.0  # not 190,000: the median of the lucky two
+    assert median_to_walk([16_000.0, 20_000.0, 20_000.0], runs=3) == 20_000.0
+    assert math.isinf(median_to_walk([5.0], runs=3)) and math.isinf(median_to_walk([], runs=0))
+    with pytest.raises(ValueError, match="runs must be an integer >= the 2 runs that walked, got 1"):
+        median_to_walk([1.0, 2.0], runs=1)

@@ -217,8 +217,9 @@ def _summary_section(summaries: Sequence) -> Section:
         "Mean ± sample sd over finished seeds. Reward and displacement are over the run's final design grid "
         f"(worst design: its lowest cell); a design walks at >= {WALKING_DISPLACEMENT:g} m. Real env steps and "
         f"wall time to walk: at the first periodic real-env grid evaluation (`evaluation.every`) with a grid mean "
-        f">= {GRID_WALKING_MEAN:g} m and every design >= {WALKING_DISPLACEMENT:g} m (median over the runs that "
-        "got there). The same numbers, unformatted: `summary.csv`.",
+        f">= {GRID_WALKING_MEAN:g} m and every design >= {WALKING_DISPLACEMENT:g} m; the median over the runs "
+        "that logged, a run that never walked counting as longer than any that did (so \"not reached\" when "
+        "fewer than half walked). The same numbers, unformatted: `summary.csv`.",
     ])
     header, rows = surrogate_rows(summaries)
     if rows:

@@ -9,6 +9,7 @@ run's ``imagined/`` columns (and its rows that log no real episode) are never re
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,6 +91,18 @@ def first_walking(run: Run) -> tuple[float, float] | None:
     if not walking:
         return None
     return float(mean.steps[walking[0]]), float(mean.seconds[walking[0]])
+
+
+def median_to_walk(reached: Sequence[float], runs: int) -> float:
+    """Median over ``runs`` runs of the figure (steps or seconds) at which those in ``reached``
+    walked the grid. A run that did not walk took longer than any that did, so it counts as
+    infinitely long: the median is ``inf`` ("not reached") when fewer than half the runs walked,
+    instead of a median of the lucky few."""
+    if not (isinstance(runs, int) and runs >= len(reached)):
+        raise ValueError(f"runs must be an integer >= the {len(reached)} runs that walked, got {runs!r}")
+    if runs == 0:
+        return math.inf
+    return float(np.median([*reached, *[math.inf] * (runs - len(reached))]))
 
 
 def surrogate_figures(run: Run) -> dict[str, float]:

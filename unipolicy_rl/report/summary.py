@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from unipolicy_rl.evaluation import DesignResult, summarise
-from unipolicy_rl.report.metrics import first_walking, surrogate_figures
+from unipolicy_rl.report.metrics import first_walking, median_to_walk, surrogate_figures
 from unipolicy_rl.report.runs import Run
 
 
@@ -114,11 +114,11 @@ def _mean_spread(values: Sequence[float], number: str) -> str:
 def _reached(values: Sequence[float], runs: int, number: str | None) -> str:
     if not runs:
         return "-"
-    if not values:
-        return f"not reached (0/{runs})"
-    median = float(np.median(values))
+    median = median_to_walk(values, runs)
+    if math.isinf(median):
+        return f"not reached ({len(values)}/{runs} runs walked)"
     shown = number.format(median) if number else _duration(median)
-    return f"{shown} (median, {len(values)}/{runs} runs)"
+    return f"{shown} (median; {len(values)}/{runs} runs walked)"
 
 
 def _duration(seconds: float) -> str:
@@ -142,8 +142,10 @@ def write_summary_csv(summaries: Sequence[SourceSummary], path: Path) -> Path:
             row[name], row[f"{name}_sd"] = _numbers(getattr(summary, name))
         row["runs_walking"] = len(summary.steps_to_walk)
         row["runs_logged"] = summary.logged_runs
-        row["median_real_steps_to_walk"] = float(np.median(summary.steps_to_walk)) if summary.steps_to_walk else ""
-        row["median_seconds_to_walk"] = float(np.median(summary.seconds_to_walk)) if summary.seconds_to_walk else ""
+        for name, values in (("median_real_steps_to_walk", summary.steps_to_walk),
+                             ("median_seconds_to_walk", summary.seconds_to_walk)):
+            median = median_to_walk(values, summary.logged_runs)
+            row[name] = "" if math.isinf(median) else median  # blank: fewer than half the runs walked
         for name in surrogate_names:
             row[name], row[f"{name}_sd"] = _numbers(summary.surrogate.get(name, []))
         rows.append(row)
