@@ -15,6 +15,10 @@
    the thesis' ME-PCE (what the real sample can determine: order 3 in one element; order 2
    in 2 x 2) next to the one-step PCE (world_model=pce) rolled out open-loop from the real
    start state with the real actions.
+3. The thesis' figure 6.5 as a heatmap (``--sweep``): the thesis' ME-PCE over (order,
+   divisions per design axis) on the same real data, mean relative error of vx and x at 0.4 s
+   (6 steps); a cell is blank where an element gets fewer episodes than terms (the fit would
+   be underdetermined). Written to ``docs/figures/pce_order_divisions.png``.
 The raw PyBullet rate of this run is printed first (machines differ; see DESIGN.md §7).
 """
 
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import torch
 from env_throughput import raw_pybullet
@@ -59,7 +64,7 @@ def timing(threads: int) -> None:
     except ImportError:
         print("chaospy not installed (pip install -e .[bench]): no comparison")
         return
-    joint = chaospy.J(*[chaospy.Uniform(-1, 1)] * 14)
+    joint = chaospy.J(*[chaospy.Uniform(-1, 1) for _ in range(14)])  # 14 independent variables
     started = time.perf_counter()
     expansion = chaospy.generate_expansion(3, joint, normed=True)
     built = time.perf_counter() - started
@@ -109,11 +114,63 @@ def accuracy(episodes: int) -> None:
               " | ".join(f"{float(ev[s - 1]):.2f}" for s in STEPS) + " |")
 
 
+SWEEP_ORDERS = (1, 2, 3)
+SWEEP_DIVISIONS = (1, 2, 3, 4, 5, 7)
+SWEEP_STEP = 6  # 0.4 s, the thesis' figure
+
+
+def order_divisions_sweep(episodes: int, out: Path) -> None:
+    """Thesis fig. 6.5: error at 0.4 s of the thesis' ME-PCE over (order, divisions), as a heatmap."""
+    import math
+
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    data = collect(episodes, "random")
+    ep = data["episodes"]
+    ep = ep[~ep["next", "physics_fault"].squeeze(-1).any(1)]
+    split = int(0.8 * ep.batch_size[0])
+    train, test = ep[:split], ep[split:]
+    thesis = StateLayout.for_env(RobotSettings(), "thesis", False, "thesis")
+    truth = test["next", "state"][:, :SWEEP_STEP][..., [0, 3]]
+    errors = np.full((2, len(SWEEP_ORDERS), len(SWEEP_DIVISIONS)), math.nan)
+    print(f"order x divisions: mean relative error of (x, vx) at step {SWEEP_STEP}, {len(test)} held-out episodes")
+    for i, order in enumerate(SWEEP_ORDERS):
+        for j, divisions in enumerate(SWEEP_DIVISIONS):
+            pce = ThesisMEPCE(*RANGES, order=order, divisions=divisions, window=3)
+            try:
+                pce.fit(train["design"][:, 0], train["action"], thesis.from_full(train["next", "state"]))
+            except ValueError as error:  # underdetermined: fewer episodes per element than terms
+                print(f"order {order}, {divisions}x{divisions}: {str(error).split(';')[0]}")
+                continue
+            predicted = pce.predict(test["design"][:, 0], test["action"])[:, :SWEEP_STEP][..., [0, 3]]
+            errors[:, i, j] = relative_error(truth, predicted, THESIS_FLOOR)[SWEEP_STEP - 1].numpy()
+            print(f"order {order}, {divisions}x{divisions} ({pce.terms} terms): x {errors[0, i, j]:.3f}, "
+                  f"vx {errors[1, i, j]:.3f}")
+    figure = Figure(figsize=(9, 3.4), layout="constrained")
+    for axis, values, name in zip(figure.subplots(1, 2), errors, ("base x", "base vx"), strict=True):
+        image = axis.imshow(values, cmap="viridis_r", aspect="auto")
+        axis.set_xticks(range(len(SWEEP_DIVISIONS)), [f"{d}x{d}" for d in SWEEP_DIVISIONS])
+        axis.set_yticks(range(len(SWEEP_ORDERS)), [str(o) for o in SWEEP_ORDERS])
+        axis.set_xlabel("elements (divisions per design axis)")
+        axis.set_ylabel("order")
+        axis.set_title(f"{name}: relative error at {SWEEP_STEP} steps (0.4 s)")
+        for (row, col), value in np.ndenumerate(values):
+            axis.text(col, row, "n/a" if math.isnan(value) else f"{value:.2f}", ha="center", va="center",
+                      color="white" if math.isnan(value) or value > np.nanmean(values) else "black", fontsize=8)
+        figure.colorbar(image, ax=axis)
+    figure.savefig(out, dpi=110)
+    print(f"wrote {out} (n/a: fewer episodes per element than terms)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--episodes", type=int, default=3000)
     parser.add_argument("--skip-timing", action="store_true")
     parser.add_argument("--skip-accuracy", action="store_true")
+    parser.add_argument("--sweep", action="store_true", help="also the order x divisions heatmap (thesis fig. 6.5)")
+    parser.add_argument("--sweep-out", type=Path,
+                        default=Path(__file__).resolve().parents[1] / "docs" / "figures" / "pce_order_divisions.png")
     args = parser.parse_args()
     rate = raw_pybullet(3000)[0]
     print(f"raw PyBullet loop: {rate:.0f} actions/s")
@@ -121,6 +178,8 @@ def main() -> None:
         timing(2)
     if not args.skip_accuracy:
         accuracy(args.episodes)
+    if args.sweep:
+        order_divisions_sweep(args.episodes, args.sweep_out)
 
 
 if __name__ == "__main__":
