@@ -106,7 +106,7 @@ class PCEDynamics(DynamicsModel):
         self.register_buffer("coefficients", torch.zeros(members, self.basis.terms, layout.size))
         self.register_buffer("residual_std", torch.zeros(members, layout.size))
         self.register_buffer("elites", torch.arange(members))
-        self.register_buffer("fitted_terms", torch.zeros((), dtype=torch.long))  # the leading terms the data fitted
+        self.register_buffer("fitted_terms", torch.zeros((), dtype=torch.long))  # how many terms the data fitted
 
     @property
     def terms(self) -> int:
@@ -162,7 +162,10 @@ class PCETrainer:
     The data decide how much of the basis is fitted: the first ``min(terms, n_train /
     oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
     the rest kept at zero, so the first epochs (1,000 real transitions) fit a lower-order model
-    and no fit is underdetermined; least-squares PCE wants 2-3 samples per term.
+    and no fit is underdetermined; least-squares PCE wants 2-3 samples per term. Terms of an
+    input that did not vary in the training data (a locked joint's angle and rate) are left out
+    too: on the data they are constant columns, copies of the intercept, and would make the
+    normal equations singular.
 
     Args:
         validation_fraction: share of the transitions held out.
@@ -198,9 +201,12 @@ class PCETrainer:
         order = torch.randperm(n, generator=generator)
         n_validation = max(1, round(self.validation_fraction * n))
         validation, train = order[:n_validation].to(device), order[n_validation:].to(device)
-        terms = min(model.terms, int(len(train) / self.oversampling))
+        constant = inputs[train].amax(0) <= inputs[train].amin(0)
+        candidates = (~(model.basis.indices[:, constant.cpu()] > 0).any(1)).nonzero().squeeze(1).to(device)
+        terms = min(len(candidates), int(len(train) / self.oversampling))
         if terms < 1:
             raise ValueError(f"need at least {self.oversampling} training transitions per PCE term, got {len(train)}")
+        active = candidates[:terms]  # in order of total degree: the constant, the linear terms, ...
         model.set_ranges(inputs[train])
         low, high = targets[train].amin(0), targets[train].amax(0)
         model.change_low.copy_(low - model.margin * (high - low))
@@ -213,17 +219,20 @@ class PCETrainer:
         weights = torch.poisson(torch.ones(model.members, len(train)), generator=generator).to(device)
         weights[0] = 1.0
         outputs = targets.shape[-1]
-        gram = torch.zeros(model.members, terms, terms, device=device)
-        moment = torch.zeros(model.members, terms, outputs, device=device)
+        # Accumulated in float64: near the data's limit (2 samples per term, a bootstrap member
+        # sees about 63% of them) float32 rounding in the sums outweighs the ridge and the Gram
+        # matrix loses its positive definiteness.
+        gram = torch.zeros(model.members, terms, terms, device=device, dtype=torch.float64)
+        moment = torch.zeros(model.members, terms, outputs, device=device, dtype=torch.float64)
         square = torch.zeros(model.members, outputs, device=device, dtype=torch.float64)
         for rows in torch.arange(len(train), device=device).split(model.chunk_size):
-            x = model.design_matrix(inputs[train[rows]])[:, :terms]
-            y = targets[train[rows]]
-            w = weights[:, rows].unsqueeze(-1)
+            x = model.design_matrix(inputs[train[rows]])[:, active].double()
+            y = targets[train[rows]].double()
+            w = weights[:, rows].unsqueeze(-1).double()
             weighted = x * w  # [members, rows, terms]
             gram += weighted.transpose(-1, -2) @ x
             moment += weighted.transpose(-1, -2) @ y
-            square += (w * y.pow(2)).sum(1).double()
+            square += (w * y.pow(2)).sum(1)
         samples = (weights > 0).sum(1)
         # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
         ridge = model.ridge * weights.sum(1).reshape(-1, 1, 1)
@@ -232,12 +241,13 @@ class PCETrainer:
         if diagnostics.fallbacks:
             raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
                                      f"raise world_model.model.ridge or lower the order")
+        coefficients = coefficients.float()
         model.coefficients.zero_()
-        model.coefficients[:, :terms] = coefficients
+        model.coefficients[:, active] = coefficients
         model.fitted_terms.fill_(terms)
         model.residual_std.copy_(diagnostics.residual_rms)
         # ---- validation: standardised MSE per member
-        x = model.design_matrix(inputs[validation])[:, :terms]
+        x = model.design_matrix(inputs[validation])[:, active]
         predicted = (x @ coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (model.members, outputs))
         truth = targets[validation].unsqueeze(1)
         scale = targets[train].var(0, correction=0).clamp_min(1e-12)
