@@ -215,6 +215,28 @@ def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_pos
     assert ((state - start)[:, :2].abs() > high.abs().max()).any()  # positions are free to leave it
 
 
+def test_the_one_step_pce_fits_real_robot_data_at_two_samples_per_term():
+    """The first fits of PCE-TRPO: 20 real episodes, 1,600 training transitions, 800 terms, and
+    bootstrap members that see about 63% of them. The robot's features are strongly correlated,
+    and in float32 the Gram matrix lost its positive definiteness here (the run stopped)."""
+    from torchrl.envs.utils import RandomPolicy
+
+    from unipolicy_rl.collectors import transitions
+    from unipolicy_rl.envs import BatchedWalkerEnv, RobotSettings
+    from unipolicy_rl.world_models import PCEDynamics, PCETrainer, StateLayout
+
+    env = BatchedWalkerEnv(20, full_state=True, episode_length=None)
+    env.set_seed(0)
+    torch.manual_seed(0)
+    rollout = env.rollout(100, RandomPolicy(env.action_spec), break_when_any_done=False)
+    env.close()
+    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+    model = PCEDynamics(layout, 4)
+    report = PCETrainer().fit(model, transitions(rollout, layout.from_full), torch.Generator().manual_seed(0))
+    assert int(model.fitted_terms) == 800
+    assert torch.isfinite(report.validation_error).all() and (report.validation_error < 1.5).all()
+
+
 def test_the_one_step_pce_sparse_basis_keeps_only_control_interactions():
     from test_world_models import TOY
 
