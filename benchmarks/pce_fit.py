@@ -157,7 +157,7 @@ def order_divisions_sweep(episodes: int, out: Path) -> None:
         axis.set_title(f"{name}: relative error at {SWEEP_STEP} steps (0.4 s)")
         for (row, col), value in np.ndenumerate(values):
             axis.text(col, row, "n/a" if math.isnan(value) else f"{value:.2f}", ha="center", va="center",
-                      color="white" if math.isnan(value) or value > np.nanmean(values) else "black", fontsize=8)
+                      color="white" if value > np.nanmean(values) else "black", fontsize=8)
         figure.colorbar(image, ax=axis)
     figure.savefig(out, dpi=110)
     print(f"wrote {out} (n/a: fewer episodes per element than terms)")
