@@ -208,7 +208,6 @@ def main(cfg: DictConfig) -> dict:
         logger = instantiate(cfg.logger)
         checkpoint_path = run_dir / "checkpoint.pt"
         metrics_csv = MetricsCSV(run_dir / "metrics.csv")
-        grid = cfg.evaluation
         designs = evaluation_designs(cfg)
         episode_length = cfg.robot.episode_length
         control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
@@ -257,7 +256,7 @@ def main(cfg: DictConfig) -> dict:
                 metrics["time/collect"] = collected - tick
                 metrics["time/update"] = time.perf_counter() - collected
                 epoch = collector.epoch
-                if not imagined and grid.every and epoch % grid.every == 0:
+                if not imagined and cfg.evaluation.every and epoch % cfg.evaluation.every == 0:
                     metrics.update(grid_metrics(policy, cfg, designs))
                 metrics["time/elapsed"] = elapsed_before + time.perf_counter() - started
                 iteration += 1
