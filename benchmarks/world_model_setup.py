@@ -43,9 +43,15 @@ def trainer_settings(world_model: str) -> dict:
     return settings
 
 
-def default_model(layout: StateLayout) -> DynamicsModel:
-    """``world_model=moe``'s model (a ``GaussianEnsemble``) from its yaml, predicting ``layout``."""
-    return instantiate(OmegaConf.load(CONFIGS / "moe.yaml").model, _partial_=True, _convert_="all")(
+def make_trainer(world_model: str, **overrides):
+    """``conf/world_model/<world_model>.yaml``'s trainer (``ModelTrainer`` or ``PCETrainer``), ``overrides`` applied."""
+    return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer, **overrides)
+
+
+def default_model(layout: StateLayout, world_model: str = "moe") -> DynamicsModel:
+    """``world_model=moe``'s model (a ``GaussianEnsemble``) from its yaml, predicting ``layout``;
+    ``world_model="pce"`` gives that yaml's one-step ``PCEDynamics`` the same way."""
+    return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").model, _partial_=True, _convert_="all")(
         layout=layout, action_dim=4)
 
 

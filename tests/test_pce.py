@@ -15,6 +15,7 @@ from unipolicy_rl.world_models.pce import (
     legendre,
     multi_indices,
     reduce,
+    solve_normal_equations,
     squared_norms,
     variance,
 )
@@ -163,6 +164,29 @@ def test_an_ill_conditioned_fit_is_reported_not_silent():
     assert torch.isfinite(coefficients).all()
     assert diagnostics.fallbacks == 1 or diagnostics.condition.max() > 1e6
     torch.testing.assert_close(design @ coefficients, 2 * x + 1)
+
+
+def test_a_float32_factor_falls_back_to_float64_where_it_cannot_factor():
+    # [[1, 1], [1, 1 + 1e-9]] is positive definite, but singular once rounded to float32.
+    gram = torch.tensor([[[1.0, 1.0], [1.0, 1.0 + 1e-9]], [[2.0, 0.0], [0.0, 3.0]]], dtype=torch.float64)
+    moment = torch.tensor([[[2.0], [2.0 + 1e-9]], [[2.0], [3.0]]], dtype=torch.float64)
+    samples = torch.tensor([10, 10])
+    exact, _ = solve_normal_equations(gram, moment, torch.ones(2, 1, dtype=torch.float64), samples)
+    assert torch.linalg.cholesky_ex(gram[0].float()).info != 0  # the premise: float32 cannot factor it
+    mixed, diagnostics = solve_normal_equations(gram, moment, torch.ones(2, 1, dtype=torch.float64), samples,
+                                                factor_dtype=torch.float32)
+    assert diagnostics.fallbacks == 0
+    torch.testing.assert_close(mixed, exact, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(mixed[1], torch.ones(2, 1, dtype=torch.float64))
+
+
+def test_the_transposed_design_matrix_is_the_design_matrix():
+    basis = Basis.create(4, 3, "hyperbolic", q=0.75)
+    z = torch.rand(2, 7, 4, dtype=torch.float64) * 2 - 1
+    direct = torch.stack([torch.stack([legendre(z[..., j], 3)[..., a] for j, a in enumerate(row)]).prod(0)
+                          for row in basis.indices.tolist()], -1)
+    torch.testing.assert_close(basis.transposed(z), direct.transpose(-1, -2))
+    torch.testing.assert_close(basis(z), direct)
 
 
 # ---- the one-step PCE world model (world_model=pce) -------------------------------------------

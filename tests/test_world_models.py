@@ -234,7 +234,7 @@ def test_truncated_branch_end_bootstraps_from_the_critic():
     torch.testing.assert_close(terminated["advantage"].reshape(3)[-1], rewards[-1] - value[2])
 
 
-def _tiny_collector(stopping: StoppingRule, epochs: int = 2):
+def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False):
     from functools import partial
 
     from torchrl.collectors import Collector
@@ -250,7 +250,7 @@ def _tiny_collector(stopping: StoppingRule, epochs: int = 2):
     model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(16,))
     reference = BatchedWalkerEnv(1, full_state=True)
     reference.close()
-    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4))
+    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic)
     return ModelBasedCollector(real, model, ModelTrainer(max_epochs=2), policy, reference, RewardWeights(),
                                imagination, stopping, seed=0, episode_length=10)
 
@@ -267,6 +267,19 @@ def test_model_based_collector_alternates_labelled_real_and_imagined_batches():
     assert "".join(pattern) == "RIIIRIII"
     assert shapes == {(10, 4)}  # 40 imagined steps as 10 branches of horizon 4
     assert collector.real_env_steps == 40 and len(collector.buffer) == 40
+
+
+@pytest.mark.parametrize("deterministic", [True, False])
+def test_deterministic_imagination_follows_each_members_mean_prediction(deterministic):
+    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=1), epochs=1, deterministic=deterministic)
+    batch = next(b for b in collector if is_imagined(b))
+    collector.shutdown()
+    mean = collector.model.predict(batch["state"], batch["action"], batch["design"], batch["member"].squeeze(-1),
+                                   deterministic=True)
+    matches = torch.isclose(batch["next", "state"], mean, atol=1e-5).all(-1)
+    physics = ~batch["next", "physics_fault"].squeeze(-1)  # a faulted step keeps the last state instead
+    assert physics.sum() > 20
+    assert matches[physics].all() if deterministic else not matches[physics].any()
 
 
 def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():

@@ -102,6 +102,8 @@ class ImaginationSettings:
             ``episode`` (whole episodes from real start states, as the thesis did).
         horizon: branch length schedule (``episode`` uses the episode length).
         member_per_step: draw the predicting member anew at every step instead of once per trajectory.
+        deterministic: imagine with each member's mean prediction, without its noise (the members'
+            spread is then the only randomness; for a model whose noise is independent per output).
         train_on_real: also take a policy update on each real batch.
         buffer_capacity: real transitions kept (FIFO).
     """
@@ -110,6 +112,7 @@ class ImaginationSettings:
     rollout: str = "branch"
     horizon: HorizonSchedule = HorizonSchedule()
     member_per_step: bool = False
+    deterministic: bool = False
     train_on_real: bool = False
     buffer_capacity: int = 200_000
 
@@ -213,7 +216,8 @@ class ModelBasedCollector:
         trajectories = max(1, self.imagination.steps_per_batch // horizon)
         starts = self._start_sampler(data)
         env = ImaginedWalkerEnv(
-            make_world_model(self.model, self.reward_weights, self.imagination.member_per_step),
+            make_world_model(self.model, self.reward_weights, self.imagination.member_per_step,
+                             self.imagination.deterministic),
             self.reference_env, starts, trajectories,
         )
         check = self._improvement_check(starts(self.stopping.check_starts))

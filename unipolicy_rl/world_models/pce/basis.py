@@ -132,14 +132,24 @@ class Basis:
         return squared_norms(self.indices, self.orthonormal)
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        """``[..., samples, terms]``: the design matrix at ``z`` ``[..., samples, dimension]`` (a
+        transposed view of :meth:`transposed`, which matrix products take as it is)."""
+        return self.transposed(z).transpose(-1, -2)
+
+    def transposed(self, z: torch.Tensor) -> torch.Tensor:
+        """``[..., terms, samples]``: the design matrix transposed, built one term per row.
+
+        Terms first because each factor is then a gather of whole rows of the univariate
+        table (contiguous copies along the samples); gathering columns of a samples-first
+        table is strided and made building the matrix cost twice its Gram product."""
         if z.shape[-1] != self.dimension:
             raise ValueError(f"the basis has {self.dimension} inputs, got {z.shape[-1]}")
         table = legendre(z, self.order, self.orthonormal).flatten(-2)
-        table = torch.cat([table, torch.ones_like(table[..., :1])], dim=-1)
+        table = torch.cat([table, torch.ones_like(table[..., :1])], dim=-1).transpose(-1, -2).contiguous()
         factors = self.factors.to(z.device)
-        out = table[..., factors[:, 0]]
+        out = table.index_select(-2, factors[:, 0])
         for k in range(1, factors.shape[1]):
-            out = out * table[..., factors[:, k]]
+            out.mul_(table.index_select(-2, factors[:, k]))
         return out
 
 

@@ -92,37 +92,65 @@ def least_squares(design: torch.Tensor, targets: torch.Tensor, weights: torch.Te
 
 
 def solve_normal_equations(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.Tensor,
-                           samples: torch.Tensor, ridge: float = 0.0,
-                           exact_condition: bool = False) -> tuple[torch.Tensor, FitDiagnostics]:
+                           samples: torch.Tensor, ridge: float = 0.0, exact_condition: bool = False,
+                           factor_dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, FitDiagnostics]:
     """Solves ``(G + ridge I) c = X^T W Y`` by Cholesky, for Gram matrices accumulated by the caller
     (over row chunks, so the design matrix of a large sample is never held at once).
 
     ``gram`` ``[..., terms, terms]``, ``moment`` ``[..., terms, outputs]``, ``target_square``
     ``[..., outputs]`` (``sum w y^2``, for the residual), ``samples`` ``[...]`` (rows with
     non-zero weight). Problems Cholesky cannot factor are flagged in ``diagnostics.failed``
-    (coefficients there are zero) for the caller to solve another way; the Cholesky runs in
-    float64 (cheap next to forming the Gram matrix).
+    (coefficients there are zero) for the caller to solve another way.
+
+    The Cholesky runs in ``factor_dtype``: float64 by default (cheap next to forming the Gram
+    matrix). A caller whose Gram matrices were accumulated in float32 gains nothing from a
+    float64 factor (the sums carry float32's error already) and may pass float32, which halves
+    the memory traffic of a large batch; problems float32 cannot factor are then factored
+    again in float64 before any is reported as failed.
     """
     terms = gram.shape[-1]
     if (samples < terms).any():
         raise ValueError(f"underdetermined fit: {terms} terms but only {int(samples.min())} samples in a problem; "
                          f"use more samples or a smaller basis (lower order, hyperbolic truncation)")
     dtype = moment.dtype
-    gram, moment, target_square = gram.double(), moment.double(), target_square.double()
-    if ridge:
-        gram = gram + ridge * torch.eye(terms, dtype=gram.dtype, device=gram.device)
-    factor, info = torch.linalg.cholesky_ex(gram)
-    coefficients = torch.cholesky_solve(moment, factor)
-    diagonal = torch.diagonal(factor, dim1=-2, dim2=-1).abs()
-    condition = diagonal.amax(-1) / diagonal.amin(-1).clamp_min(torch.finfo(diagonal.dtype).tiny)
-    failed = (info != 0) | ~torch.isfinite(coefficients).flatten(-2).all(-1)
+    given = gram
+    gram = _with_ridge(given, ridge, factor_dtype)
+    coefficients, condition, failed = _cholesky_solve(gram, moment.to(factor_dtype))
+    if factor_dtype != torch.float64 and failed.any():
+        gram, moment = _with_ridge(given, ridge, torch.float64), moment.double()
+        coefficients, condition = coefficients.double(), condition.double()
+        coefficients[failed], condition[failed], failed[failed] = _cholesky_solve(gram[failed], moment[failed])
+    moment = moment.to(gram.dtype)
     coefficients = torch.where(failed.reshape(*failed.shape, 1, 1), torch.zeros_like(coefficients), coefficients)
     if exact_condition:
         eigenvalues = torch.linalg.eigvalsh(gram).clamp_min(0)
         condition = (eigenvalues[..., -1] / eigenvalues[..., 0].clamp_min(torch.finfo(gram.dtype).tiny)).sqrt()
-    # Residual sum of squares from the normal equations: y'Wy - 2 c'X'Wy + c'Gc (no second pass over the rows).
-    rss = target_square - 2 * (coefficients * moment).sum(-2) + (coefficients * (gram @ coefficients)).sum(-2)
+    # Residual sum of squares from the normal equations: y'Wy - 2 c'X'Wy + c'Gc (no second pass over the rows),
+    # summed in float64 whatever the factor's precision, since the three terms nearly cancel.
+    rss = (target_square.double() - 2 * (coefficients * moment).double().sum(-2)
+           + (coefficients * (gram @ coefficients)).double().sum(-2))
     residual_rms = (rss.clamp_min(0) / samples.unsqueeze(-1).to(rss.dtype)).sqrt()
     condition = torch.where(failed, torch.full_like(condition, float("inf")), condition)
     diagnostics = FitDiagnostics(samples, terms, condition.to(dtype), residual_rms.to(dtype), int(failed.sum()), failed)
     return coefficients.to(dtype), diagnostics
+
+
+def _with_ridge(gram: torch.Tensor, ridge: float, dtype: torch.dtype) -> torch.Tensor:
+    """``gram + ridge I`` in ``dtype``, never writing into the caller's tensor."""
+    if not ridge:
+        return gram.to(dtype)
+    gram = gram.to(dtype, copy=True)
+    gram.diagonal(dim1=-2, dim2=-1).add_(ridge)
+    return gram
+
+
+def _cholesky_solve(gram: torch.Tensor, moment: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Coefficients, condition estimate and failure flag per problem, by Cholesky in the Gram's dtype."""
+    factor, info = torch.linalg.cholesky_ex(gram)
+    # Two triangular solves: what cholesky_solve does, and about 3x faster for batches of these sizes.
+    coefficients = torch.linalg.solve_triangular(
+        factor.mT, torch.linalg.solve_triangular(factor, moment, upper=False), upper=True)
+    diagonal = torch.diagonal(factor, dim1=-2, dim2=-1).abs()
+    condition = diagonal.amax(-1) / diagonal.amin(-1).clamp_min(torch.finfo(diagonal.dtype).tiny)
+    failed = (info != 0) | ~torch.isfinite(coefficients).flatten(-2).all(-1)
+    return coefficients, condition, failed

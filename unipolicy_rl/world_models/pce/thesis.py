@@ -89,11 +89,12 @@ class ThesisMEPCE:
         return (cell[..., 0] * self.divisions + cell[..., 1]).long(), local
 
     def _inputs(self, local: torch.Tensor, actions: torch.Tensor, t: int, window: int) -> torch.Tensor:
-        """``[E, 2 + a * window]``: design in its element, then ``u_{t-window} .. u_{t-1}`` (zeros before the start)."""
-        past = actions.new_zeros(actions.shape[0], window, self.action_dim)
+        """``[..., 2 + a * window]``: design in its element, then ``u_{t-window} .. u_{t-1}`` (zeros
+        before the start), for ``local [..., 2]`` and ``actions [..., H, a]``."""
+        past = actions.new_zeros(*actions.shape[:-2], window, self.action_dim)
         first = max(0, t - window)
-        past[:, window - (t - first):] = actions[:, first:t]
-        return torch.cat([local, past.clamp(-1, 1).flatten(1).to(local.dtype)], dim=-1)
+        past[..., window - (t - first):, :] = actions[..., first:t, :]
+        return torch.cat([local, past.clamp(-1, 1).flatten(-2).to(local.dtype)], dim=-1)
 
     def _missing_terms(self, basis: Basis, t: int, window: int) -> torch.Tensor:
         """Terms that involve an action slot before the episode start at step ``t``."""
@@ -112,27 +113,35 @@ class ThesisMEPCE:
             raise ValueError(f"underdetermined fit: {self.fit_basis.terms} terms per element but element "
                              f"{int(counts.argmin())} has {int(counts.min())} episodes; collect more episodes "
                              f"or use fewer divisions / a lower order")
-        # Episodes packed per element: [elements, max count], padding rows weighted 0.
+        # Episodes packed per element once: [elements, max count], padding rows weighted 0.
         slot = torch.arange(len(order)) - (torch.cumsum(counts, 0) - counts)[element[order]]
         rows = torch.zeros(self.elements, int(counts.max()), dtype=torch.long)
         weight = torch.zeros(self.elements, int(counts.max()), dtype=torch.float32)
         rows[element[order], slot] = order
         weight[element[order], slot] = 1.0
-        horizon, outputs = states.shape[1], states.shape[2]
+        local, actions, states = local[rows].float(), actions[rows].float(), states[rows].float()
+        padded = not bool(weight.all())
+        horizon, outputs = states.shape[2], states.shape[3]
         coefficients = torch.empty(horizon, self.elements, self.terms, outputs, dtype=torch.float32)
         conditions, residuals = [], []
         for t in range(1, horizon + 1):
-            x = self.fit_basis(self._inputs(local, actions, t, self.fit_window).float())[rows] * weight.unsqueeze(-1)
-            y = states[:, t - 1].float()[rows] * weight.unsqueeze(-1)
-            gram = x.transpose(1, 2) @ x
-            moment = x.transpose(1, 2) @ y
+            # The design matrix transposed ([elements, terms, rows]), as Basis.transposed builds it fastest.
+            xt = self.fit_basis.transposed(self._inputs(local, actions, t, self.fit_window))
+            y = states[:, :, t - 1]
+            if padded:
+                xt.mul_(weight.unsqueeze(1))
+                y = y * weight.unsqueeze(-1)
+            gram = xt @ xt.transpose(1, 2)
+            moment = xt @ y
             missing = self._missing_terms(self.fit_basis, t, self.fit_window)
             # Terms of actions not yet taken: identity rows, so their coefficients solve to zero.
             gram[:, missing] = 0.0
             gram[:, :, missing] = 0.0
             gram[:, missing, missing] = 1.0
             moment[:, missing] = 0.0
-            c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts, self.ridge)
+            # Factored in float32, the precision the Gram matrices were summed in (float64 where that fails).
+            c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts, self.ridge,
+                                                    factor_dtype=torch.float32)
             if diagnostics.fallbacks:
                 raise FloatingPointError(f"step {t}: {diagnostics.fallbacks} elements could not be factored "
                                          f"({diagnostics.summary()}); use ridge > 0 or fewer terms")
