@@ -226,13 +226,14 @@ class PCETrainer:
         moment = torch.zeros(model.members, terms, outputs, device=device, dtype=torch.float64)
         square = torch.zeros(model.members, outputs, device=device, dtype=torch.float64)
         for rows in torch.arange(len(train), device=device).split(model.chunk_size):
-            x = model.design_matrix(inputs[train[rows]])[:, active].double()
+            # Terms first ([terms, rows]), as the basis builds it: selecting terms copies whole rows.
+            xt = model.design_matrix(inputs[train[rows]]).transpose(-1, -2)[active].double()
             y = targets[train[rows]].double()
-            w = weights[:, rows].unsqueeze(-1).double()
-            weighted = x * w  # [members, rows, terms]
-            gram += weighted.transpose(-1, -2) @ x
-            moment += weighted.transpose(-1, -2) @ y
-            square += (w * y.pow(2)).sum(1)
+            w = weights[:, rows].double()
+            weighted = xt * w.unsqueeze(1)  # [members, terms, rows]
+            gram += weighted @ xt.transpose(-1, -2)
+            moment += weighted @ y
+            square += w @ y.pow(2)
         samples = (weights > 0).sum(1)
         # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
         ridge = model.ridge * weights.sum(1).reshape(-1, 1, 1)

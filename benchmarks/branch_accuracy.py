@@ -1,0 +1,145 @@
+"""World-model accuracy where training uses it: short branches from a run's own real states.
+
+    python benchmarks/branch_accuracy.py <run dir or checkpoint.pt of a model-based run>
+        [--fit-transitions 30000] [--test-transitions 10000] [--horizons 1 3 8 25] [--starts 2000]
+
+``model_accuracy.py`` and ``surrogate_accuracy.py`` measure surrogates on episodes of a
+scripted gait and of random actions, from the episode start. Training meets a surrogate
+elsewhere: imagined branches of a few steps (``world_model=pce``: 3 growing to 8) start from
+any real state in the replay buffer, and the actions are the policy's. This benchmark takes
+that buffer from a model-based run's checkpoint (a walking policy's data: the robot is
+metres from x = 0), fits the one-step PCE and the default ensemble as their yamls say on the
+``--fit-transitions`` real steps before the last ``--test-transitions`` (what a fit at that
+point of the run saw), and rolls each out open loop from ``--starts`` held-out real states
+with the recorded actions, ``k`` steps for each horizon (starts whose episode lasts ``k``
+more steps), deterministic (each member's mean) and sampled (with the model's noise), a
+member drawn per branch as imagination draws it.
+
+Per horizon, over the branches: the mean relative error of the base's x and x_dot with the
+thesis' floors (1 cm, 1 cm/s; eq. 5.2), the same for the branch's displacement x_k - x_0
+(what the reward sums; the position itself flatters a robot far from the origin), the mean
+absolute errors, and the share of predictions that faulted (non-finite or past the
+explosion limit: the imagined env ends the branch there). One thread (accuracy does not
+depend on it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+import world_model_setup as setup
+from model_accuracy import open_loop
+from tensordict import TensorDict
+
+from unipolicy_rl.checkpoint import load_checkpoint
+from unipolicy_rl.envs import RobotSettings
+from unipolicy_rl.world_models import StateLayout
+from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, relative_error
+
+X, X_DOT = 0, 3  # base forward position and velocity in the state
+
+
+def buffer_of(path: Path) -> TensorDict:
+    """The real transitions a model-based run's checkpoint carries, oldest first."""
+    checkpoint = load_checkpoint(path / "checkpoint.pt" if path.is_dir() else path)
+    collector = checkpoint.get("collector") or {}
+    if "buffer" not in collector:
+        raise ValueError(f"{path} is not a model-based run's checkpoint (no replay buffer in it)")
+    storage = collector["buffer"]["_storage"]
+    rows, length = storage["_storage"], int(storage["_len"])
+    writes = int(collector["buffer"]["_writer"]["_write_count"])
+    data = TensorDict({key: value[:length] for key, value in rows.items()}, batch_size=[length])
+    if writes > length:  # the FIFO wrapped: the oldest row sits at the write cursor
+        cursor = int(collector["buffer"]["_writer"]["_cursor"])
+        data = torch.cat([data[cursor:], data[:cursor]])
+    return data
+
+
+def branch_starts(episode_start: torch.Tensor, steps: int, count: int, generator: torch.Generator) -> torch.Tensor:
+    """Up to ``count`` rows whose episode runs ``steps`` more recorded steps from them."""
+    begun = torch.cumsum(episode_start.long(), 0)
+    rows = torch.arange(len(episode_start) - steps + 1)
+    # No new episode begins within rows (i, i + steps - 1].
+    valid = rows[begun[rows + steps - 1] == begun[rows]]
+    return valid[torch.randperm(len(valid), generator=generator)[:count]]
+
+
+def measure(model, test: TensorDict, horizon: int, deterministic: bool, starts: int, generator) -> dict[str, float]:
+    rows = branch_starts(test["episode_start"], horizon, starts, generator)
+    window = rows[:, None] + torch.arange(horizon)[None]
+    start = test["state"][rows]
+    path, faults = open_loop(model, start, test["action"][window], test["design"][rows], horizon, deterministic,
+                             generator)
+    predicted, true = path[:, -1], test["next_state"][rows + horizon - 1]
+    columns = [X, X_DOT]
+    # relative_error averages over its first axis (here the branches) per step (one: the branch's last).
+    relative = relative_error(true[:, None, columns], predicted[:, None, columns], THESIS_FLOOR)[0]
+    displacement = relative_error((true[:, X] - start[:, X])[:, None, None],
+                                  (predicted[:, X] - start[:, X])[:, None, None], THESIS_FLOOR)[0, 0]
+    return {"relative_x": float(relative[0]), "relative_x_dot": float(relative[1]),
+            "relative_displacement": float(displacement),
+            "absolute_x_cm": float((predicted[:, X] - true[:, X]).abs().mean()) * 100,
+            "absolute_x_dot_cm": float((predicted[:, X_DOT] - true[:, X_DOT]).abs().mean()) * 100,
+            "faulted": faults / (len(rows) * horizon), "branches": len(rows)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a model-based run's directory or its checkpoint.pt")
+    parser.add_argument("--fit-transitions", type=int, default=30_000)
+    parser.add_argument("--test-transitions", type=int, default=10_000)
+    parser.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 8, 25])
+    parser.add_argument("--starts", type=int, default=2000, help="branches per horizon")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    data = buffer_of(args.run)
+    if len(data) <= args.test_transitions:
+        raise ValueError(f"the buffer holds {len(data)} transitions, not more than --test-transitions "
+                         f"{args.test_transitions}")
+    test = data[-args.test_transitions:]
+    fit = data[max(0, len(data) - args.test_transitions - args.fit_transitions): len(data) - args.test_transitions]
+    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+    if data["state"].shape[-1] != layout.size:
+        raise ValueError(f"the buffer's states have {data['state'].shape[-1]} numbers; this benchmark reads the "
+                         f"full state ({layout.size}), the default world_model.model_state")
+    print(f"{args.run}: {len(data)} buffered real transitions; {len(fit)} fit the models, the last "
+          f"{len(test)} are held out")
+    horizons = sorted(set(args.horizons))
+    results = {}
+    for name in ("pce", "moe"):
+        torch.manual_seed(args.seed)
+        model = setup.default_model(layout, name)
+        report = setup.make_trainer(name, num_threads=1).fit(model, fit, torch.Generator().manual_seed(args.seed))
+        print(f"{name}: {model.__class__.__name__}, fit {report.epochs} epoch(s) in {report.seconds:.1f} s, "
+              f"validation MSE (standardised) median {report.validation_error.median():.3f}")
+        for deterministic in (True, False):
+            for horizon in horizons:
+                started = time.perf_counter()
+                generator = torch.Generator().manual_seed(args.seed)
+                results[name, deterministic, horizon] = measure(model, test, horizon, deterministic, args.starts,
+                                                                generator)
+                print(f"  {'deterministic' if deterministic else 'sampled'}, {horizon} steps: "
+                      f"{results[name, deterministic, horizon]['branches']} branches in "
+                      f"{time.perf_counter() - started:.1f} s")
+    print("| model | prediction | k | rel. err. x | rel. err. x_dot | rel. err. displacement | abs. err. x (cm) "
+          "| abs. err. x_dot (cm/s) | predictions faulted |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for (name, deterministic, horizon), r in results.items():
+        print(f"| {name} | {'deterministic' if deterministic else 'sampled'} | {horizon} | {r['relative_x']:.3f} | "
+              f"{r['relative_x_dot']:.3f} | {r['relative_displacement']:.3f} | {r['absolute_x_cm']:.2f} | "
+              f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} |")
+    k = 8 if 8 in horizons else horizons[-1]
+    pce, moe = results["pce", True, k], results["moe", True, k]
+    print(f"{k}-step branches, deterministic: pce relative error of x {pce['relative_x']:.3f} (target 0.1), of the "
+          f"displacement {pce['relative_displacement']:.3f}; pce / moe displacement error: "
+          f"{pce['relative_displacement']:.3f} / {moe['relative_displacement']:.3f} = "
+          f"{pce['relative_displacement'] / moe['relative_displacement']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
