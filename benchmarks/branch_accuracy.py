@@ -58,17 +58,19 @@ def buffer_of(path: Path) -> TensorDict:
     return data
 
 
-def branch_starts(episode_start: torch.Tensor, steps: int, count: int, generator: torch.Generator) -> torch.Tensor:
-    """Up to ``count`` rows whose episode runs ``steps`` more recorded steps from them."""
-    begun = torch.cumsum(episode_start.long(), 0)
-    rows = torch.arange(len(episode_start) - steps + 1)
-    # No new episode begins within rows (i, i + steps - 1].
-    valid = rows[begun[rows + steps - 1] == begun[rows]]
+def branch_starts(data: TensorDict, steps: int, count: int, generator: torch.Generator) -> torch.Tensor:
+    """Up to ``count`` rows from which the buffer holds ``steps`` consecutive real steps: each
+    row's next state is the following row's state (a new episode, or a faulted step the buffer
+    left out, breaks the chain)."""
+    broken = (data["state"][1:] != data["next_state"][:-1]).any(-1)
+    breaks = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(broken.long(), 0)])
+    rows = torch.arange(len(data) - steps + 1)
+    valid = rows[breaks[rows + steps - 1] == breaks[rows]]
     return valid[torch.randperm(len(valid), generator=generator)[:count]]
 
 
 def measure(model, test: TensorDict, horizon: int, deterministic: bool, starts: int, generator) -> dict[str, float]:
-    rows = branch_starts(test["episode_start"], horizon, starts, generator)
+    rows = branch_starts(test, horizon, starts, generator)
     window = rows[:, None] + torch.arange(horizon)[None]
     start = test["state"][rows]
     path, faults = open_loop(model, start, test["action"][window], test["design"][rows], horizon, deterministic,
