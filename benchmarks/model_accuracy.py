@@ -35,7 +35,7 @@ episodes) against each model's open-loop rollout over the whole episode from the
 state (sampled, as imagination runs it), with the longest horizon's step marked.
 The last lines are the headline ratios of the longest horizon's relative error of x,
 deterministic predictions: ``moe_thesis / moe`` and ``moe (thesis state) / moe``, and the
-PCE's relative errors at 8 steps (issue 12's target: at most 0.1 over the horizon training uses).
+PCE's relative errors at 8 steps (the PCE's target: at most 0.1 over the horizon training uses).
 """
 
 from __future__ import annotations
