@@ -48,6 +48,9 @@ def buffer_of(path: Path) -> TensorDict:
     collector = checkpoint.get("collector") or {}
     if "buffer" not in collector:
         raise ValueError(f"{path} is not a model-based run's checkpoint (no replay buffer in it)")
+    # The replay buffer's own state dict (TorchRL's ReplayBuffer.state_dict), read here rather
+    # than loaded into a ReplayBuffer: the rows are wanted in the order they were written, which
+    # only the writer's cursor gives, and TorchRL has no public accessor for it.
     storage = collector["buffer"]["_storage"]
     rows, length = storage["_storage"], int(storage["_len"])
     writes = int(collector["buffer"]["_writer"]["_write_count"])

@@ -141,7 +141,7 @@ class Basis:
 
         Terms first because each factor is then a gather of whole rows of the univariate
         table (contiguous copies along the samples); gathering columns of a samples-first
-        table is strided and made building the matrix cost twice its Gram product."""
+        table is strided, and building the matrix would then cost more than its Gram product."""
         if z.shape[-1] != self.dimension:
             raise ValueError(f"the basis has {self.dimension} inputs, got {z.shape[-1]}")
         table = legendre(z, self.order, self.orthonormal).flatten(-2)

@@ -147,7 +147,7 @@ def _with_ridge(gram: torch.Tensor, ridge: float, dtype: torch.dtype) -> torch.T
 def _cholesky_solve(gram: torch.Tensor, moment: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Coefficients, condition estimate and failure flag per problem, by Cholesky in the Gram's dtype."""
     factor, info = torch.linalg.cholesky_ex(gram)
-    # Two triangular solves: what cholesky_solve does, and about 3x faster for batches of these sizes.
+    # Two triangular solves: what cholesky_solve does, through LAPACK's batched triangular solve, which is faster.
     coefficients = torch.linalg.solve_triangular(
         factor.mT, torch.linalg.solve_triangular(factor, moment, upper=False), upper=True)
     diagonal = torch.diagonal(factor, dim1=-2, dim2=-1).abs()
