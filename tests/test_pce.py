@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 from numpy.polynomial import legendre as npleg
+from tensordict import TensorDict
 
+from unipolicy_rl.world_models import StateLayout
 from unipolicy_rl.world_models.pce import (
     Basis,
     PolynomialChaos,
@@ -333,3 +335,76 @@ def test_the_thesis_me_pce_recovers_a_windowed_state_and_its_moments():
         ThesisMEPCE((0.15, 0.2), (0.4, 0.6), divisions=0)
     with pytest.raises(ValueError, match=r"design \[0.3"):
         pce.predict(torch.tensor([[0.3, 0.5]]), a2[:1])
+
+
+# ---- the thesis' ME-PCE as a world model (world_model=pce_thesis) -------------------------------
+
+TOY_STATE = StateLayout(num_bodies=0, num_joint_values=2, state_columns=(0, 1), observation_columns=(0, 1))
+
+
+def toy_batch(n: int, seed: int, horizon: int = 6) -> TensorDict:
+    """:func:`toy_episodes` as a real batch ``[robots, steps]``: every row one episode from a reset (state 0)."""
+    design, actions, states = toy_episodes(n, seed, horizon)
+    before = torch.cat([torch.zeros(n, 1, 2), states[:, :-1]], 1)
+    return TensorDict({"state": before, "action": actions, "design": design.unsqueeze(1).expand(n, horizon, 2),
+                       "next": {"state": states, "physics_fault": torch.zeros(n, horizon, 1, dtype=torch.bool)}},
+                      [n, horizon])
+
+
+def imagine(model, batch: TensorDict) -> torch.Tensor:
+    """The model stepped from each episode's start with the episode's actions: ``[n, horizon, outputs]``."""
+    state = torch.cat([batch["state"][:, 0], model.memory_of(batch)[0][:, 0]], -1)
+    out = []
+    for s in range(batch.shape[1]):
+        state = model.predict(state, batch["action"][:, s], batch["design"][:, s], None)
+        out.append(state[:, :model.layout.robot_size])
+    return torch.stack(out, 1)
+
+
+def test_the_thesis_world_model_steps_its_memory_and_reproduces_held_out_episodes():
+    from unipolicy_rl.collectors import transitions
+    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+
+    model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
+                              horizon=6, order=3, divisions=2, window=2)
+    assert model.layout.size == 2 + 1 + 2  # the state, the step, the one past action of a window of 2
+    data = transitions(toy_batch(3000, 0), TOY_STATE.from_full, model.memory_of)
+    report = ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+    assert model.fitted_terms == model.terms and report.members_without_data == 0
+    assert float(report.validation_error[0]) < 1e-6  # the toy state lies in the basis
+    held_out = toy_batch(200, 1)
+    # Stepped through its own memory, the model follows whole held-out episodes open loop.
+    torch.testing.assert_close(imagine(model, held_out), held_out["next", "state"], atol=1e-3, rtol=0)
+
+
+def test_the_thesis_world_model_fits_what_few_episodes_determine():
+    from unipolicy_rl.collectors import transitions
+    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+
+    def fitted(episodes: int, divisions: int):
+        model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
+                                  horizon=6, order=3, divisions=divisions, window=2)
+        data = transitions(toy_batch(episodes, 0), TOY_STATE.from_full, model.memory_of)
+        return model, ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+
+    # 300 episodes over 4 elements (60 per element and step, 84 terms): the leading terms, never an
+    # underdetermined solve; they hold most of the toy state.
+    model, report = fitted(300, 2)
+    assert 1 <= model.fitted_terms < model.terms
+    assert float(report.validation_error[0]) < 0.05
+    # 10 episodes over 16 elements: unvisited elements are reported and predict their step's mean.
+    model, report = fitted(10, 4)
+    assert report.members_without_data > 0
+    assert torch.isfinite(imagine(model, toy_batch(50, 1))).all()
+
+
+def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):
+    from test_train import TINY, run_train
+
+    result = run_train(*TINY, "source=pce", "world_model=pce_thesis", "workers=1", "epochs=2",
+                       "evaluation.every=1", "world_model.model.divisions=2", "world_model.model.order=2",
+                       "world_model.imagination.steps_per_batch=60", "world_model.stopping.max_updates=2",
+                       f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "metrics.csv").read_text()
+    assert "model/validation_mse" in text and "imagined/reward_per_step" in text

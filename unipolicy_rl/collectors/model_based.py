@@ -125,19 +125,27 @@ class ImaginationSettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
 
 
-def transitions(batch: TensorDictBase, state_of) -> TensorDict:
+def transitions(batch: TensorDictBase, state_of, memory_of=None) -> TensorDict:
     """One row per real step of ``batch`` (``[robots, steps]``) for the model to fit:
     state, action, design, next state, and whether the state began an episode. Steps the
-    physics faulted on are left out (their next state is a repeat, not physics)."""
+    physics faulted on are left out (their next state is a repeat, not physics).
+
+    ``state_of`` maps the env's ``full`` state to the model's; ``memory_of`` (a model's
+    :meth:`~unipolicy_rl.world_models.DynamicsModel.memory_of`) gives the memory columns to
+    append to the states before and after each step, or None for a model without memory."""
     keep = ~batch.get(("next", "physics_fault")).squeeze(-1)
     start = torch.zeros(batch.batch_size, dtype=torch.bool)
     start[..., 0] = True  # every epoch starts every robot from a reset
+    state, next_state = state_of(batch.get("state")), state_of(batch.get(("next", "state")))
+    memory = None if memory_of is None else memory_of(batch)
+    if memory is not None:
+        state, next_state = torch.cat([state, memory[0]], -1), torch.cat([next_state, memory[1]], -1)
     rows = TensorDict(
         {
-            "state": state_of(batch.get("state")),
+            "state": state,
             "action": batch.get("action").clamp(-1.0, 1.0),
             "design": batch.get("design"),
-            "next_state": state_of(batch.get(("next", "state"))),
+            "next_state": next_state,
             "episode_start": start,
         },
         batch_size=batch.batch_size,
@@ -197,7 +205,7 @@ class ModelBasedCollector:
         if self.real.epoch > self.model_fitted_for:  # resumed right after a real batch
             yield from self._model_phase()
         for batch in self.real:
-            self.buffer.extend(transitions(batch, self.model.layout.from_full))
+            self.buffer.extend(transitions(batch, self.model.layout.from_full, self.model.memory_of))
             yield batch
             yield from self._model_phase()
 

@@ -15,7 +15,7 @@ from unipolicy_rl.world_models.accuracy import (
 from unipolicy_rl.world_models.ensemble import CellEnsemble, DynamicsModel, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.pce import PCEDynamics, PCETrainer
+from unipolicy_rl.world_models.pce import PCEDynamics, PCETrainer, ThesisPCEDynamics, ThesisPCETrainer
 from unipolicy_rl.world_models.trainer import FitReport, ModelTrainer
 
 __all__ = [
@@ -28,6 +28,8 @@ __all__ = [
     "PCEDynamics",
     "PCETrainer",
     "StateLayout",
+    "ThesisPCEDynamics",
+    "ThesisPCETrainer",
     "band",
     "jensen_shannon",
     "make_world_model",

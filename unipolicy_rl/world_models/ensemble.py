@@ -85,6 +85,11 @@ class DynamicsModel(nn.Module):
         """Where the model fits and predicts (``cfg.device``); callers bring their tensors here."""
         return self.input_norm.mean.device
 
+    def memory_of(self, batch) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The memory columns (``layout.memory_size``) of the states before and after each step of
+        a real batch ``[robots, steps]`` whose rows are whole episodes; None for a model without."""
+        return None
+
     def data_members(self, design: torch.Tensor) -> torch.Tensor | None:
         """The member each training sample belongs to, or None when every member sees all data."""
         return None

@@ -55,7 +55,8 @@ class PredictNextState(nn.Module):
         device = self.model.device
         predicted = self.model.predict(state.to(device), action.to(device), design.to(device),
                                        member.squeeze(-1).to(device), deterministic=self.deterministic).to(state.device)
-        healthy = healthy_rows(predicted).unsqueeze(-1)
+        # The robot's part only: a model's memory (a step count) is not physics.
+        healthy = healthy_rows(predicted[..., :self.model.layout.robot_size]).unsqueeze(-1)
         next_state = torch.where(healthy, predicted, state)
         return next_state, design, member, ~healthy
 

@@ -10,6 +10,10 @@ angles and rates. Two views are derived here and nowhere else:
 * the policy's observation: the columns of the env's ``observation`` layout within the state
   (:func:`~unipolicy_rl.envs.simulation.observation_columns`), with (l, rho) appended when
   the env appends them, so the policy sees exactly what the real env would show it.
+
+A model whose prediction needs more than the robot's state (the thesis' ME-PCE needs the step
+within the episode and the last actions) carries it as ``memory_size`` columns after the
+robot's state; the model fills them (``DynamicsModel.memory_of``), the env only passes them on.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ class StateLayout:
     state_columns: tuple[int, ...]
     observation_columns: tuple[int, ...]
     append_design: bool = False
+    memory_size: int = 0
 
     @classmethod
     def for_env(cls, robot: RobotSettings, observation: str, append_design: bool, model_state: str) -> StateLayout:
@@ -59,12 +64,18 @@ class StateLayout:
                    tuple(position[int(c)] for c in policy_columns), append_design)
 
     @property
-    def size(self) -> int:
+    def robot_size(self) -> int:
+        """The robot's own state: bodies, then joint values (what the env reports)."""
         return self.num_bodies * VALUES_PER_BODY + self.num_joint_values
 
     @property
+    def size(self) -> int:
+        """The robot's state and the model's memory after it."""
+        return self.robot_size + self.memory_size
+
+    @property
     def feature_size(self) -> int:
-        return self.size - 2
+        return self.robot_size - 2
 
     @property
     def observation_size(self) -> int:
@@ -74,17 +85,18 @@ class StateLayout:
     def position_columns(self) -> list[int]:
         """Body positions and joint angles: what the thesis' position network predicts."""
         bodies = [VALUES_PER_BODY * b + k for b in range(self.num_bodies) for k in range(3)]
-        return bodies + list(range(self.size - self.num_joint_values, self.size - self.num_joint_values // 2))
+        joints = self.robot_size - self.num_joint_values
+        return bodies + list(range(joints, joints + self.num_joint_values // 2))
 
     @property
     def velocity_columns(self) -> list[int]:
         """Body velocities and joint rates: what the thesis' velocity network predicts."""
         positions = set(self.position_columns)
-        return [c for c in range(self.size) if c not in positions]
+        return [c for c in range(self.robot_size) if c not in positions]
 
     def from_full(self, full_state: torch.Tensor) -> torch.Tensor:
-        """The model's state out of the env's ``full`` layout."""
-        if full_state.shape[-1] == self.size:
+        """The robot's part of the model's state out of the env's ``full`` layout (no memory)."""
+        if full_state.shape[-1] == self.robot_size:
             return full_state
         return full_state[..., list(self.state_columns)]
 
@@ -95,7 +107,7 @@ class StateLayout:
         relative = torch.cat([bodies[..., :2] - base_xy, bodies[..., 2:]], dim=-1)
         # The base's own relative x, y are zero by construction: leave them out.
         flat = relative.flatten(-2)[..., 2:]
-        return torch.cat([flat, state[..., self.num_bodies * VALUES_PER_BODY:]], dim=-1)
+        return torch.cat([flat, state[..., self.num_bodies * VALUES_PER_BODY:self.robot_size]], dim=-1)
 
     def observation(self, state: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
         """The policy's observation of ``state`` (and ``design`` when the env appends it)."""

@@ -14,6 +14,7 @@ from unipolicy_rl.world_models.pce.dynamics import PCEDynamics, PCETrainer
 from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, PolynomialChaos, mean, reduce, variance
 from unipolicy_rl.world_models.pce.regression import FitDiagnostics, least_squares, solve_normal_equations
 from unipolicy_rl.world_models.pce.thesis import ThesisMEPCE
+from unipolicy_rl.world_models.pce.thesis_dynamics import ThesisPCEDynamics, ThesisPCETrainer
 
 __all__ = [
     "REDUCTIONS",
@@ -23,6 +24,8 @@ __all__ = [
     "PCEDynamics",
     "PCETrainer",
     "ThesisMEPCE",
+    "ThesisPCEDynamics",
+    "ThesisPCETrainer",
     "PolynomialChaos",
     "UniformInputs",
     "least_squares",

@@ -15,10 +15,9 @@ instead fits the window plus the action that leaves it and reduces with
 :func:`~unipolicy_rl.world_models.pce.expansion.reduce` (``variance`` keeps the full
 variance, as the thesis asks, with the Legendre norms).
 
-This is a standalone UQ/fit class, not a :class:`~unipolicy_rl.world_models.DynamicsModel`:
-it predicts the state at step ``t`` from the design and the action window, with no current
-state, so an imagined env would have to carry the step index and the last ``T`` actions in its
-state, which the world-model layer's ``predict(state, action, design, member)`` does not pass.
+This class fits and predicts whole episodes, for uncertainty quantification on its own;
+:class:`~unipolicy_rl.world_models.ThesisPCEDynamics` makes it the dynamics of an imagined env
+(``world_model=pce_thesis``), carrying the step and the last actions as the state's memory.
 """
 
 from __future__ import annotations
@@ -30,6 +29,20 @@ import torch
 from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
 from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, reduce
 from unipolicy_rl.world_models.pce.regression import FitDiagnostics, solve_normal_equations
+
+
+def pack_by_element(element: torch.Tensor, elements: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Samples grouped by element for a batched solve: ``rows [elements, max count]`` (indices
+    into the samples), ``weight`` (1, or 0 on padding) of the same shape, and ``counts [elements]``."""
+    order = torch.argsort(element, stable=True)
+    counts = torch.bincount(element, minlength=elements)
+    width = max(1, int(counts.max())) if counts.numel() else 1
+    slot = torch.arange(len(order)) - (torch.cumsum(counts, 0) - counts)[element[order]]
+    rows = torch.zeros(elements, width, dtype=torch.long)
+    weight = torch.zeros(elements, width, dtype=torch.float32)
+    rows[element[order], slot] = order
+    weight[element[order], slot] = 1.0
+    return rows, weight, counts
 
 
 class ThesisMEPCE:
@@ -55,8 +68,9 @@ class ThesisMEPCE:
             raise ValueError(f"window must be an integer >= 1, got {window!r}")
         if reduction not in ("none", *REDUCTIONS):
             raise ValueError(f"reduction must be one of {('none', *REDUCTIONS)}, got {reduction!r}")
-        self.low = torch.tensor([length_range[0], density_range[0]], dtype=torch.float64)
-        self.high = torch.tensor([length_range[1], density_range[1]], dtype=torch.float64)
+        # The box is bookkeeping, kept on the CPU (a model built on another device moves it per call).
+        self.low = torch.tensor([length_range[0], density_range[0]], dtype=torch.float64, device="cpu")
+        self.high = torch.tensor([length_range[1], density_range[1]], dtype=torch.float64, device="cpu")
         if not (self.high > self.low).all():
             raise ValueError(f"design ranges must have low < high, got {length_range!r} and {density_range!r}")
         self.action_dim, self.divisions, self.window, self.reduction, self.ridge = (action_dim, divisions, window,
@@ -79,7 +93,8 @@ class ThesisMEPCE:
 
     def element(self, design: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each design's element and its position in it mapped to [-1, 1]^2; a design outside the box is refused."""
-        u = (design.double() - self.low) / (self.high - self.low)
+        low, high = self.low.to(design.device), self.high.to(design.device)
+        u = (design.double() - low) / (high - low)
         if ((u < -1e-9) | (u > 1 + 1e-9) | ~torch.isfinite(u)).any():
             bad = design.reshape(-1, 2)[((u < -1e-9) | (u > 1 + 1e-9) | ~torch.isfinite(u)).reshape(-1, 2).any(1)][0]
             raise ValueError(f"design {bad.tolist()} lies outside the uniform ranges {self.low.tolist()} - "
@@ -107,44 +122,19 @@ class ThesisMEPCE:
         is the state after action ``t - 1``). Returns timing and conditioning figures."""
         started = time.perf_counter()
         element, local = self.element(design)
-        order = torch.argsort(element, stable=True)
-        counts = torch.bincount(element, minlength=self.elements)
+        rows, weight, counts = pack_by_element(element, self.elements)
         if int(counts.min()) < self.fit_basis.terms:
             raise ValueError(f"underdetermined fit: {self.fit_basis.terms} terms per element but element "
                              f"{int(counts.argmin())} has {int(counts.min())} episodes; collect more episodes "
                              f"or use fewer divisions / a lower order")
-        # Episodes packed per element once: [elements, max count], padding rows weighted 0.
-        slot = torch.arange(len(order)) - (torch.cumsum(counts, 0) - counts)[element[order]]
-        rows = torch.zeros(self.elements, int(counts.max()), dtype=torch.long)
-        weight = torch.zeros(self.elements, int(counts.max()), dtype=torch.float32)
-        rows[element[order], slot] = order
-        weight[element[order], slot] = 1.0
         local, actions, states = local[rows].float(), actions[rows].float(), states[rows].float()
-        padded = not bool(weight.all())
         horizon, outputs = states.shape[2], states.shape[3]
         coefficients = torch.empty(horizon, self.elements, self.terms, outputs, dtype=torch.float32)
         conditions, residuals = [], []
         for t in range(1, horizon + 1):
             # The design matrix transposed ([elements, terms, rows]), as Basis.transposed builds it fastest.
             xt = self.fit_basis.transposed(self._inputs(local, actions, t, self.fit_window))
-            y = states[:, :, t - 1]
-            if padded:
-                xt.mul_(weight.unsqueeze(1))
-                y = y * weight.unsqueeze(-1)
-            gram = xt @ xt.transpose(1, 2)
-            moment = xt @ y
-            missing = self._missing_terms(self.fit_basis, t, self.fit_window)
-            # Terms of actions not yet taken: identity rows, so their coefficients solve to zero.
-            gram[:, missing] = 0.0
-            gram[:, :, missing] = 0.0
-            gram[:, missing, missing] = 1.0
-            moment[:, missing] = 0.0
-            # Factored in float32, the precision the Gram matrices were summed in (float64 where that fails).
-            c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts, self.ridge,
-                                                    factor_dtype=torch.float32)
-            if diagnostics.fallbacks:
-                raise FloatingPointError(f"step {t}: {diagnostics.fallbacks} elements could not be factored "
-                                         f"({diagnostics.summary()}); use ridge > 0 or fewer terms")
+            c, diagnostics = self.solve_step(xt, states[:, :, t - 1], weight, counts, t)
             if self.reduction != "none":
                 _, c = reduce(c, self.fit_basis.indices, list(range(2, 2 + self.action_dim)),
                               self.reduction, self.fit_basis.squared_norms())
@@ -155,6 +145,35 @@ class ThesisMEPCE:
         return {"seconds": time.perf_counter() - started, "max_condition": float(torch.stack(conditions).max()),
                 "mean_residual_rms": float(torch.stack(residuals).mean()), "terms": float(self.terms),
                 "elements": float(self.elements), "min_episodes_per_element": float(counts.min())}
+
+    def solve_step(self, xt: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, counts: torch.Tensor, t: int,
+                   inactive: torch.Tensor | None = None) -> tuple[torch.Tensor, FitDiagnostics]:
+        """Every element's coefficients at step ``t`` from its packed rows, in one batched solve.
+
+        ``xt`` ``[elements, terms, rows]`` (the first ``terms`` of :attr:`fit_basis`), ``y``
+        ``[elements, rows, outputs]``, ``weight`` ``[elements, rows]`` (0 on padding), ``counts``
+        ``[elements]``. Terms of actions not yet taken at ``t``, and ``inactive`` ``[elements,
+        terms]`` ones, get identity rows in the normal equations (each a pseudo-observation
+        ``c = 0``), so they solve to zero and every element shares one batched solve.
+        """
+        if not bool(weight.all()):
+            xt = xt * weight.unsqueeze(1)
+            y = y * weight.unsqueeze(-1)
+        gram = xt @ xt.transpose(1, 2)
+        moment = xt @ y
+        pinned = self._missing_terms(self.fit_basis, t, self.fit_window)[:xt.shape[1]].expand(xt.shape[0], -1)
+        if inactive is not None:
+            pinned = pinned | inactive
+        gram.masked_fill_(pinned.unsqueeze(-1) | pinned.unsqueeze(-2), 0.0)
+        gram.diagonal(dim1=-2, dim2=-1)[pinned] = 1.0
+        moment.masked_fill_(pinned.unsqueeze(-1), 0.0)
+        # Factored in float32, the precision the Gram matrices were summed in (float64 where that fails).
+        c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts + pinned.sum(1), self.ridge,
+                                                factor_dtype=torch.float32)
+        if diagnostics.fallbacks:
+            raise FloatingPointError(f"step {t}: {diagnostics.fallbacks} elements could not be factored "
+                                     f"({diagnostics.summary()}); use ridge > 0 or fewer terms")
+        return c, diagnostics
 
     @torch.no_grad()
     def predict(self, design: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
