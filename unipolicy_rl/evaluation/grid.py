@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -111,6 +111,42 @@ def _check_designs_were_used(rollout: TensorDictBase, designs: Sequence[Design])
         )
 
 
+def design_rollouts(policy, env_kwargs: dict, designs: Sequence[Design], num_robots: int | None = None, seed: int = 0,
+                    deterministic: bool = True,
+                    progress: str | None = None) -> Iterator[tuple[list[Design], TensorDictBase, float]]:
+    """One episode of ``policy`` per design, ``num_robots`` at a time: yields each batch's designs,
+    its rollout (``[num_robots, steps]``; a short last batch is padded with copies of its last
+    design, whose rows follow the batch's) and the env's control period.
+
+    ``progress``: a progress bar with this label, or None for none.
+    """
+    if "num_robots" in env_kwargs:
+        raise ValueError("env_kwargs must not set num_robots: pass it as num_robots=...")
+    designs = list(designs)
+    num_robots = num_robots or min(len(designs), DEFAULT_MAX_ROBOTS)
+    if not (isinstance(num_robots, int) and num_robots >= 1):
+        raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
+    env = BatchedWalkerEnv(num_robots=num_robots, **env_kwargs)
+    env.set_seed(seed)
+    batches = range(0, len(designs), num_robots)
+    if progress is not None:
+        from tqdm.auto import tqdm
+
+        batches = tqdm(batches, desc=progress, unit="batch")
+    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    try:
+        with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(exploration):
+            torch.manual_seed(seed)
+            for start in batches:
+                batch = designs[start : start + num_robots]
+                padded = batch + [batch[-1]] * (num_robots - len(batch))
+                rollout = rollout_designs(env, policy, padded)
+                _check_designs_were_used(rollout, padded)
+                yield batch, rollout, env.control_period
+    finally:
+        env.close()
+
+
 def evaluate_on_designs(
     policy,
     env_kwargs: dict,
@@ -132,35 +168,12 @@ def evaluate_on_designs(
         raise ValueError(f"episodes_per_design must be a positive integer, got {episodes_per_design!r}")
     if not designs:
         raise ValueError("designs is empty: nothing to evaluate")
-    if "num_robots" in env_kwargs:
-        raise ValueError("env_kwargs must not set num_robots: pass it as evaluate_on_designs(num_robots=...)")
     pairs = [design for design in designs for _ in range(episodes_per_design)]
-    num_robots = num_robots or min(len(pairs), DEFAULT_MAX_ROBOTS)
-    if not (isinstance(num_robots, int) and num_robots >= 1):
-        raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
-
-    env = BatchedWalkerEnv(num_robots=num_robots, **env_kwargs)
-    env.set_seed(seed)
-    outcomes = []
-    batches = range(0, len(pairs), num_robots)
-    if progress:
-        from tqdm.auto import tqdm
-
-        batches = tqdm(batches, desc="evaluating designs", unit="batch")
-    exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    try:
-        with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(exploration):
-            torch.manual_seed(seed)
-            for start in batches:
-                batch = pairs[start : start + num_robots]
-                # The last batch may be short: pad it with copies of its last design and drop them after.
-                padded = batch + [batch[-1]] * (num_robots - len(batch))
-                rollout = rollout_designs(env, policy, padded)
-                _check_designs_were_used(rollout, padded)
-                outcome = episode_outcomes(rollout, env.control_period)
-                outcomes.append({key: value[: len(batch)] for key, value in outcome.items()})
-    finally:
-        env.close()
+    outcomes = [
+        {key: value[: len(batch)] for key, value in episode_outcomes(rollout, control_period).items()}
+        for batch, rollout, control_period in design_rollouts(policy, env_kwargs, pairs, num_robots, seed,
+                                                              deterministic, "evaluating designs" if progress else None)
+    ]
     merged = {key: torch.cat([outcome[key] for outcome in outcomes]) for key in outcomes[0]}
     return [
         _summarise_design(design, {key: value[i * episodes_per_design : (i + 1) * episodes_per_design]

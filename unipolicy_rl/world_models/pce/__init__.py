@@ -1,5 +1,6 @@
 """Polynomial chaos (PCE) in torch: Legendre bases on uniform inputs, batched least squares,
-moments from coefficients, the thesis' reduction step; and the PCE world models built on them."""
+moments from coefficients, the thesis' reduction step; the PCE world models built on them; and a
+policy's episode over the uncertain design as a PCE (:class:`DesignResponse`)."""
 
 from unipolicy_rl.world_models.pce.basis import (
     TRUNCATIONS,
@@ -9,6 +10,12 @@ from unipolicy_rl.world_models.pce.basis import (
     multi_indices,
     squared_norms,
     total_degree_terms,
+)
+from unipolicy_rl.world_models.pce.design_response import (
+    DesignResponse,
+    gauss_legendre_designs,
+    policy_trajectories,
+    uniform_designs,
 )
 from unipolicy_rl.world_models.pce.dynamics import PCEDynamics, PCETrainer
 from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, PolynomialChaos, mean, reduce, variance
@@ -20,6 +27,7 @@ __all__ = [
     "REDUCTIONS",
     "TRUNCATIONS",
     "Basis",
+    "DesignResponse",
     "FitDiagnostics",
     "PCEDynamics",
     "PCETrainer",
@@ -28,13 +36,16 @@ __all__ = [
     "ThesisPCETrainer",
     "PolynomialChaos",
     "UniformInputs",
+    "gauss_legendre_designs",
     "least_squares",
     "legendre",
     "mean",
     "multi_indices",
+    "policy_trajectories",
     "reduce",
     "solve_normal_equations",
     "squared_norms",
     "total_degree_terms",
+    "uniform_designs",
     "variance",
 ]

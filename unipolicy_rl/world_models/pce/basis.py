@@ -40,8 +40,8 @@ def multi_indices(dimension: int, order: int, truncation: str = "total_degree", 
     _check_order(order)
     if truncation not in TRUNCATIONS:
         raise ValueError(f"truncation must be one of {TRUNCATIONS}, got {truncation!r}")
-    if truncation == "hyperbolic" and not 0 < q <= 1:
-        raise ValueError(f"q must lie in (0, 1] for hyperbolic truncation, got {q!r}")
+    if not 0 < q <= 1:  # checked whatever the truncation, so a bad setting never waits for a switch to hyperbolic
+        raise ValueError(f"q must lie in (0, 1] (the hyperbolic truncation's q-norm), got {q!r}")
     if max_interaction is not None and not (isinstance(max_interaction, int) and max_interaction >= 1):
         raise ValueError(f"max_interaction must be an integer >= 1 or None, got {max_interaction!r}")
     rank = min(dimension, order if max_interaction is None else min(max_interaction, order))
