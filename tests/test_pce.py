@@ -293,11 +293,14 @@ def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
 
 # ---- the thesis' ME-PCE (standalone) ----------------------------------------------------------
 
-def toy_episodes(n: int, seed: int, horizon: int = 6):
-    """A state that depends smoothly on the design and the last two actions only."""
+def toy_episodes(n: int, seed: int, horizon: int = 6, held_at_bound: int | None = None):
+    """A state that depends smoothly on the design and the last two actions only (action
+    ``held_at_bound`` always 1, as a policy pushing a joint to its limit)."""
     g = torch.Generator().manual_seed(seed)
     design = torch.stack([0.15 + 0.05 * torch.rand(n, generator=g), 0.4 + 0.2 * torch.rand(n, generator=g)], -1)
     actions = torch.rand(n, horizon, 2, generator=g) * 2 - 1
+    if held_at_bound is not None:
+        actions[..., held_at_bound] = 1.0
     states = torch.zeros(n, horizon, 2)
     for t in range(1, horizon + 1):
         last = actions[:, t - 1]
@@ -342,9 +345,9 @@ def test_the_thesis_me_pce_recovers_a_windowed_state_and_its_moments():
 TOY_STATE = StateLayout(num_bodies=0, num_joint_values=2, state_columns=(0, 1), observation_columns=(0, 1))
 
 
-def toy_batch(n: int, seed: int, horizon: int = 6) -> TensorDict:
+def toy_batch(n: int, seed: int, horizon: int = 6, held_at_bound: int | None = None) -> TensorDict:
     """:func:`toy_episodes` as a real batch ``[robots, steps]``: every row one episode from a reset (state 0)."""
-    design, actions, states = toy_episodes(n, seed, horizon)
+    design, actions, states = toy_episodes(n, seed, horizon, held_at_bound)
     before = torch.cat([torch.zeros(n, 1, 2), states[:, :-1]], 1)
     return TensorDict({"state": before, "action": actions, "design": design.unsqueeze(1).expand(n, horizon, 2),
                        "next": {"state": states, "physics_fault": torch.zeros(n, horizon, 1, dtype=torch.bool)}},
@@ -396,6 +399,37 @@ def test_the_thesis_world_model_fits_what_few_episodes_determine():
     model, report = fitted(10, 4)
     assert report.members_without_data > 0
     assert torch.isfinite(imagine(model, toy_batch(50, 1))).all()
+
+
+def test_the_thesis_world_model_solves_an_element_whose_actions_sit_at_their_bound():
+    from unipolicy_rl.collectors import transitions
+    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+
+    def saturated(n: int, seed: int) -> TensorDict:
+        return toy_batch(n, seed, held_at_bound=1)  # the held action's terms repeat the constant
+
+    model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
+                              horizon=6, order=3, divisions=1, window=2, ridge=0.0)
+    data = transitions(saturated(600, 0), TOY_STATE.from_full, model.memory_of)
+    report = ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+    assert report.solve_fallbacks == 0  # the held action's terms are left out, the rest is well posed
+    held_out = saturated(100, 1)
+    torch.testing.assert_close(imagine(model, held_out), held_out["next", "state"], atol=1e-3, rtol=0)
+
+
+def test_a_singular_element_is_solved_by_rank_revealing_least_squares_and_counted():
+    from unipolicy_rl.world_models.pce import ThesisMEPCE
+
+    pce = ThesisMEPCE((0.15, 0.2), (0.4, 0.6), action_dim=1, order=2, divisions=1, window=1)
+    g = torch.Generator().manual_seed(0)
+    xt = pce.fit_basis.transposed(torch.rand(1, 50, 3, generator=g, dtype=torch.float64) * 2 - 1)
+    xt[:, 2] = xt[:, 1]  # two terms equal on every sample: the normal equations are singular
+    y = (xt[:, 0] + 2 * xt[:, 1] - xt[:, 3]).unsqueeze(-1)
+    weight, counts = torch.ones(1, 50, dtype=torch.float64), torch.tensor([50])
+    c, diagnostics = pce.solve_step(xt, y, weight, counts, t=1, fallback=True)
+    assert diagnostics.fallbacks == 1
+    torch.testing.assert_close((xt.mT @ c), y, atol=1e-4, rtol=0)  # a solution that fits
+    torch.testing.assert_close(c[0, 1], c[0, 2])  # the minimum-norm one splits the repeated term evenly
 
 
 def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):

@@ -25,7 +25,9 @@ TRANSITION_KEYS = ("state", "action", "design", "next_state")
 @dataclass
 class FitReport:
     """What one fit did: epochs run, last training loss, each member's best validation error
-    (standardised MSE), the elites, and the members that had no data (a thesis cell not visited)."""
+    (standardised MSE), the elites, the members that had no data (a thesis cell not visited),
+    and how many least-squares problems a closed-form fit had to solve by rank-revealing
+    ``lstsq`` because their normal equations could not be factored."""
 
     epochs: int
     train_loss: float
@@ -33,6 +35,7 @@ class FitReport:
     elites: list[int]
     members_without_data: int
     seconds: float
+    solve_fallbacks: int = 0
 
     def as_metrics(self, prefix: str = "model/") -> dict[str, float]:
         trained = self.validation_error[torch.isfinite(self.validation_error)]
@@ -44,6 +47,7 @@ class FitReport:
             math.nan,
             f"{prefix}members_without_data": float(self.members_without_data),
             f"{prefix}fit_seconds": self.seconds,
+            f"{prefix}solve_fallbacks": float(self.solve_fallbacks),
         }
 
 

@@ -30,6 +30,8 @@ from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
 from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, reduce
 from unipolicy_rl.world_models.pce.regression import FitDiagnostics, solve_normal_equations
 
+MAX_NORMAL_EQUATIONS_CONDITION = 1e6
+
 
 def pack_by_element(element: torch.Tensor, elements: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Samples grouped by element for a batched solve: ``rows [elements, max count]`` (indices
@@ -56,7 +58,7 @@ class ThesisMEPCE:
         window: past actions in the expansion (thesis: T = 3).
         reduction: ``none`` (fit the window directly), ``projection`` or ``variance`` (fit one
             more action, then drop it by the reduction step).
-        ridge: Tikhonov term on the normal equations.
+        ridge: Tikhonov term on the normal equations, per sample of an element.
     """
 
     def __init__(self, length_range, density_range, action_dim: int = 4, order: int = 3,
@@ -66,6 +68,8 @@ class ThesisMEPCE:
             raise ValueError(f"divisions must be an integer >= 1, got {divisions!r}")
         if not (isinstance(window, int) and window >= 1):
             raise ValueError(f"window must be an integer >= 1, got {window!r}")
+        if not ridge >= 0:
+            raise ValueError(f"ridge must be >= 0, got {ridge!r}")
         if reduction not in ("none", *REDUCTIONS):
             raise ValueError(f"reduction must be one of {('none', *REDUCTIONS)}, got {reduction!r}")
         # The box is bookkeeping, kept on the CPU (a model built on another device moves it per call).
@@ -147,14 +151,18 @@ class ThesisMEPCE:
                 "elements": float(self.elements), "min_episodes_per_element": float(counts.min())}
 
     def solve_step(self, xt: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, counts: torch.Tensor, t: int,
-                   inactive: torch.Tensor | None = None) -> tuple[torch.Tensor, FitDiagnostics]:
+                   inactive: torch.Tensor | None = None,
+                   fallback: bool = False) -> tuple[torch.Tensor, FitDiagnostics]:
         """Every element's coefficients at step ``t`` from its packed rows, in one batched solve.
 
         ``xt`` ``[elements, terms, rows]`` (the first ``terms`` of :attr:`fit_basis`), ``y``
         ``[elements, rows, outputs]``, ``weight`` ``[elements, rows]`` (0 on padding), ``counts``
         ``[elements]``. Terms of actions not yet taken at ``t``, and ``inactive`` ``[elements,
         terms]`` ones, get identity rows in the normal equations (each a pseudo-observation
-        ``c = 0``), so they solve to zero and every element shares one batched solve.
+        ``c = 0``), so they solve to zero and every element shares one batched solve. An element
+        whose normal equations cannot be factored raises, or with ``fallback`` is solved by
+        rank-revealing least squares on its rows (a policy's actions may sit at their bound, so
+        some basis columns repeat others) and counted in ``diagnostics.fallbacks``.
         """
         if not bool(weight.all()):
             xt = xt * weight.unsqueeze(1)
@@ -165,14 +173,29 @@ class ThesisMEPCE:
         if inactive is not None:
             pinned = pinned | inactive
         gram.masked_fill_(pinned.unsqueeze(-1) | pinned.unsqueeze(-2), 0.0)
+        # The ridge is per sample, so its pull is the same whatever an element's share of the data.
+        gram.diagonal(dim1=-2, dim2=-1).add_(self.ridge * counts.to(gram.dtype).unsqueeze(-1))
         gram.diagonal(dim1=-2, dim2=-1)[pinned] = 1.0
         moment.masked_fill_(pinned.unsqueeze(-1), 0.0)
-        # Factored in float32, the precision the Gram matrices were summed in (float64 where that fails).
-        c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts + pinned.sum(1), self.ridge,
-                                                factor_dtype=torch.float32)
-        if diagnostics.fallbacks:
+        # Factored in the precision the Gram matrices were summed in (float32: float64 where that fails). With
+        # ``fallback`` in float64, so a singular element shows as one (a float32 factor hides it in rounding).
+        factor_dtype = torch.float64 if fallback else gram.dtype
+        c, diagnostics = solve_normal_equations(gram, moment, y.pow(2).sum(1), counts + pinned.sum(1),
+                                                factor_dtype=factor_dtype)
+        if diagnostics.fallbacks and not fallback:
             raise FloatingPointError(f"step {t}: {diagnostics.fallbacks} elements could not be factored "
                                      f"({diagnostics.summary()}); use ridge > 0 or fewer terms")
+        if not fallback:
+            return c, diagnostics
+        # Past this condition of X the normal equations (cond(X)^2) keep no digit even in float64.
+        unsolved = diagnostics.failed | (diagnostics.condition > MAX_NORMAL_EQUATIONS_CONDITION)
+        diagnostics.fallbacks = int(unsolved.sum())
+        for element in unsolved.nonzero().flatten().tolist():
+            free = ~pinned[element]
+            rows = xt[element, free].mT.double()  # weighted already: padding rows are zero
+            c[element] = 0.0
+            c[element, free] = torch.linalg.lstsq(rows, y[element].double(), driver="gelsd").solution.to(c.dtype)
+        c = c.to(y.dtype)
         return c, diagnostics
 
     @torch.no_grad()

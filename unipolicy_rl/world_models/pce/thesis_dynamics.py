@@ -51,7 +51,7 @@ class ThesisPCEDynamics(DynamicsModel):
         order, truncation, q: the basis (thesis: order 3, total degree).
         divisions: elements per design axis (thesis: 7).
         window: actions in the expansion (thesis: T = 3).
-        ridge: Tikhonov term on the normal equations.
+        ridge: Tikhonov term on the normal equations, per sample of an element.
     """
 
     members = 1
@@ -194,7 +194,7 @@ class ThesisPCETrainer:
         pce, elements = model.pce, model.pce.elements
         coefficients = torch.zeros_like(model.coefficients, device="cpu")
         visited = torch.zeros(elements, dtype=torch.bool)
-        widest = 1
+        widest, fallbacks = 1, 0
         for s in range(model.horizon):
             rows = train[step[train] == s]
             if len(rows) == 0:
@@ -205,9 +205,21 @@ class ThesisPCETrainer:
             fitted = torch.clamp((counts / self.oversampling).floor().long(), 0, pce.terms)
             width = max(1, int(fitted.max()))
             inactive = torch.arange(width).unsqueeze(0) >= fitted.unsqueeze(1)
+            # Terms of an input an element's samples never varied (an action held at its bound)
+            # repeat the constant: they are left out, as PCETrainer leaves out locked joints.
+            inputs = x[rows][packed]
+            valid = weight.unsqueeze(-1) > 0
+            spread = (torch.where(valid, inputs, -math.inf).amax(1) - torch.where(valid, inputs, math.inf).amin(1))
+            constant = spread <= 1e-9  # [elements, inputs]
+            basis = model.leading_basis(width)
+            inactive |= (constant.unsqueeze(1) & (basis.indices > 0).unsqueeze(0)).any(-1)
             widest = max(widest, width)
-            xt = model.leading_basis(width).transposed(x[rows][packed])
-            c, _ = pce.solve_step(xt, y[rows][packed], weight, counts, s + 1, inactive)
+            # In float64: the problems are small, and a policy's data are far from the uniform law the basis is
+            # orthogonal under, so their Gram matrices are not the near-identity the float32 fit relies on.
+            xt = basis.transposed(inputs.double())
+            c, diagnostics = pce.solve_step(xt, y[rows][packed].double(), weight.double(), counts, s + 1, inactive,
+                                            fallback=True)
+            fallbacks += diagnostics.fallbacks
             coefficients[s, :, :width] = c
             # An element with too few samples for even the constant predicts the step's mean state
             # (the constant term of the orthonormal basis is 1).
@@ -223,4 +235,5 @@ class ThesisPCETrainer:
 
         error, train_error = error_on(validation), float(error_on(train))
         error = error if torch.isfinite(error) else torch.tensor(math.inf)
-        return FitReport(1, train_error, error.reshape(1), [0], int((~visited).sum()), time.perf_counter() - started)
+        return FitReport(1, train_error, error.reshape(1), [0], int((~visited).sum()), time.perf_counter() - started,
+                         fallbacks)
