@@ -1,0 +1,54 @@
+"""The thesis' ME-PCE (``world_model=pce_thesis``) fitted on a run's own real data: held-out error
+against the samples required per term and the number of elements.
+
+    python benchmarks/thesis_pce_buffer.py <run dir or checkpoint.pt of a pce_thesis run>
+        [--divisions 1 7] [--oversampling 2 5 10 20] [--order 3]
+
+Takes the replay buffer a model-based run's checkpoint carries (the policy's episodes, with the
+memory columns of ``world_model=pce_thesis``), and fits ``ThesisPCETrainer`` as training does
+(20% of the transitions held out) for every (divisions, oversampling): the trainer's reported
+held-out error is the standardised MSE of the predicted state (1 = no better than each output's
+mean over the data), which for this model is its open-loop error.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+from branch_accuracy import buffer_of
+
+from unipolicy_rl.envs import RobotSettings
+from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
+from unipolicy_rl.world_models import StateLayout, ThesisPCEDynamics, ThesisPCETrainer
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--divisions", type=int, nargs="+", default=[1, 7])
+    parser.add_argument("--oversampling", type=float, nargs="+", default=[2.0, 5.0, 10.0, 20.0])
+    parser.add_argument("--order", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    data = buffer_of(args.run)
+    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "thesis")
+    probe = ThesisPCEDynamics(layout, 4, SE_LENGTH_RANGE, SE_DENSITY_RANGE)
+    if data["state"].shape[-1] != probe.layout.size:
+        raise ValueError(f"{args.run}: its buffer's states have {data['state'].shape[-1]} columns, a pce_thesis "
+                         f"run's have {probe.layout.size} (the thesis state and its memory)")
+    print(f"{len(data)} real transitions ({len(data) // 100} episodes); order {args.order}, T = 3")
+    print("| elements | samples per term | terms fitted (widest) | held-out error | training error | fit s |")
+    print("|---|---|---|---|---|---|")
+    for divisions in args.divisions:
+        for oversampling in args.oversampling:
+            model = ThesisPCEDynamics(layout, 4, SE_LENGTH_RANGE, SE_DENSITY_RANGE, order=args.order,
+                                      divisions=divisions)
+            report = ThesisPCETrainer(oversampling=oversampling).fit(model, data, torch.Generator().manual_seed(0))
+            print(f"| {divisions}x{divisions} | {oversampling:g} | {model.fitted_terms} | "
+                  f"{float(report.validation_error[0]):.3f} | {report.train_loss:.3f} | {report.seconds:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
