@@ -172,11 +172,13 @@ class ThesisMEPCE:
         pinned = self._missing_terms(self.fit_basis, t, self.fit_window)[:xt.shape[1]].expand(xt.shape[0], -1)
         if inactive is not None:
             pinned = pinned | inactive
-        gram.masked_fill_(pinned.unsqueeze(-1) | pinned.unsqueeze(-2), 0.0)
         # The ridge is per sample, so its pull is the same whatever an element's share of the data.
-        gram.diagonal(dim1=-2, dim2=-1).add_(self.ridge * counts.to(gram.dtype).unsqueeze(-1))
-        gram.diagonal(dim1=-2, dim2=-1)[pinned] = 1.0
-        moment.masked_fill_(pinned.unsqueeze(-1), 0.0)
+        if self.ridge:
+            gram.diagonal(dim1=-2, dim2=-1).add_(self.ridge * counts.to(gram.dtype).unsqueeze(-1))
+        if pinned.any():  # (most steps of the thesis' fit have none: a pass over every Gram matrix saved)
+            gram.masked_fill_(pinned.unsqueeze(-1) | pinned.unsqueeze(-2), 0.0)
+            gram.diagonal(dim1=-2, dim2=-1)[pinned] = 1.0
+            moment.masked_fill_(pinned.unsqueeze(-1), 0.0)
         # Factored in the precision the Gram matrices were summed in (float32: float64 where that fails). With
         # ``fallback`` in float64, so a singular element shows as one (a float32 factor hides it in rounding).
         factor_dtype = torch.float64 if fallback else gram.dtype
