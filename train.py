@@ -27,8 +27,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.checkpoint import (
+    check_resumable,
     collector_state,
     load_checkpoint,
+    policy_only,
     restore_training_state,
     save_checkpoint,
     settings_for_resume,
@@ -37,7 +39,14 @@ from unipolicy_rl.checkpoint import (
 from unipolicy_rl.collectors import is_imagined
 from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
-from unipolicy_rl.evaluation import evaluate_on_designs, format_summary, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.evaluation import (
+    evaluate_on_designs,
+    format_summary,
+    grid_score,
+    plot_heatmaps,
+    summarise,
+    write_csv,
+)
 from unipolicy_rl.evaluation.plots import plot_training_curve
 from unipolicy_rl.factories import (
     env_kwargs,
@@ -180,6 +189,7 @@ class StopAtEpochEnd:
 def main(cfg: DictConfig) -> dict:
     state = load_checkpoint(cfg.resume) if cfg.resume else None
     if state is not None:
+        check_resumable(state, cfg.resume)
         overridden = [item.split("=", 1)[0].lstrip("+~") for item in HydraConfig.get().overrides.task]
         cfg = settings_for_resume(cfg, state, overridden, cfg.resume)
     validate_config(cfg)  # every setting, before any robot is built or any time is spent
@@ -207,6 +217,10 @@ def main(cfg: DictConfig) -> dict:
 
         logger = instantiate(cfg.logger)
         checkpoint_path = run_dir / "checkpoint.pt"
+        # The policy of the best periodic evaluation so far (grid_score), kept apart from the
+        # run's last state: a run that walks and then falls back still hands over its best policy.
+        best_path = run_dir / "best.pt"
+        best = state.get("best_evaluation") if state is not None else None
         metrics_csv = MetricsCSV(run_dir / "metrics.csv")
         designs = evaluation_designs(cfg)
         episode_length = cfg.robot.episode_length
@@ -214,12 +228,14 @@ def main(cfg: DictConfig) -> dict:
         config = OmegaConf.to_container(cfg, resolve=True)
         started = time.perf_counter()
 
+        def current_state(with_collector: bool = True) -> dict:
+            return training_state(epoch=collector.epoch, config=config, observation_dim=observation_dim,
+                                  action_dim=action_dim, actor=actor, critic=critic, statistics=statistics,
+                                  updater=updater, collector=collector if with_collector else None,
+                                  elapsed=elapsed_before + time.perf_counter() - started)
+
         def checkpoint() -> Path:
-            state = training_state(epoch=collector.epoch, config=config, observation_dim=observation_dim,
-                                   action_dim=action_dim, actor=actor, critic=critic, statistics=statistics,
-                                   updater=updater, collector=collector,
-                                   elapsed=elapsed_before + time.perf_counter() - started)
-            return save_checkpoint(checkpoint_path, state)
+            return save_checkpoint(checkpoint_path, {**current_state(), "best_evaluation": best})
 
         iteration = 0
         progress = tqdm.tqdm(total=cfg.epochs, initial=collector.epoch, disable=not cfg.progress_bar,
@@ -258,6 +274,13 @@ def main(cfg: DictConfig) -> dict:
                 epoch = collector.epoch
                 if not imagined and cfg.evaluation.every and epoch % cfg.evaluation.every == 0:
                     metrics.update(grid_metrics(policy, cfg, designs))
+                    evaluation = {"epoch": epoch, "grid_mean": metrics["eval/grid_mean_displacement"],
+                                  "grid_min": metrics["eval/grid_min_displacement"]}
+                    if best is None or (grid_score(evaluation["grid_mean"], evaluation["grid_min"])
+                                        > grid_score(best["grid_mean"], best["grid_min"])):
+                        best = evaluation
+                        save_checkpoint(best_path, {**policy_only(current_state(with_collector=False)),
+                                                    "best_evaluation": best})
                 metrics["time/elapsed"] = elapsed_before + time.perf_counter() - started
                 iteration += 1
                 for name, value in metrics.items():
@@ -283,7 +306,10 @@ def main(cfg: DictConfig) -> dict:
     print(f"saved policy: {path}")
     print(f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}:")
     print(format_summary(summary))
-    return {"epoch": collector.epoch, "checkpoint": str(path), **summary}
+    if best is not None:
+        print(f"best periodic evaluation: epoch {best['epoch']}, grid mean {best['grid_mean']:.2f} m, worst design "
+              f"{best['grid_min']:.2f} m; its policy: {best_path}")
+    return {"epoch": collector.epoch, "checkpoint": str(path), "best": best, **summary}
 
 
 def _progress_figures(metrics: dict[str, float]) -> dict[str, str]:

@@ -13,7 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from unipolicy_rl.checkpoint import load_checkpoint, load_policy, save_checkpoint
-from unipolicy_rl.envs import WalkerEnv
+from unipolicy_rl.envs import DesignDistribution, WalkerEnv
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -125,6 +125,34 @@ def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
     # The checkpoint holds every epoch that finished, not just the last periodic one.
     finished = metrics.read_text().count("\n") - 1
     assert load_checkpoint(run_dir / "checkpoint.pt")["epoch"] == finished >= 2
+
+
+def test_the_best_periodic_evaluation_keeps_its_policy_apart_from_the_run(tmp_path):
+    from unipolicy_rl.evaluation import evaluate_on_designs, grid_score, summarise
+
+    result = run_train(*TINY, "workers=1", "epochs=4", "evaluation.every=1", "evaluation.grid=2",
+                       f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    with (tmp_path / "metrics.csv").open() as file:
+        evaluations = [(int(row["epoch"]), float(row["eval/grid_mean_displacement"]),
+                        float(row["eval/grid_min_displacement"])) for row in csv.DictReader(file)
+                       if row.get("eval/grid_mean_displacement")]
+    assert [epoch for epoch, _, _ in evaluations] == [1, 2, 3, 4]
+    best_epoch, best_mean, _ = max(evaluations, key=lambda e: grid_score(e[1], e[2]))  # the first of equals
+    best = load_checkpoint(tmp_path / "best.pt")
+    assert best["epoch"] == best_epoch and best["best_evaluation"]["epoch"] == best_epoch
+    assert "collector" not in best and load_checkpoint(tmp_path / "checkpoint.pt")["best_evaluation"] == \
+        best["best_evaluation"]
+    assert f"best periodic evaluation: epoch {best_epoch}" in result.stdout
+    # best.pt is the policy that was evaluated: the same grid gives the same figure again.
+    loaded = load_policy(tmp_path / "best.pt")
+    again = summarise(evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), DesignDistribution().grid(2),
+                                          episodes_per_design=1, seed=0))
+    assert again["mean_forward_displacement"] == pytest.approx(best_mean, abs=1e-6)
+    # It holds a policy, not a run: a resume from it is refused by name.
+    refused = run_train(*TINY, "workers=1", "epochs=5", f"resume={tmp_path / 'best.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    assert refused.returncode != 0 and "holds a policy only" in refused.stderr
 
 
 def test_checkpoints_are_written_atomically(tmp_path, monkeypatch):

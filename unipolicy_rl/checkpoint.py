@@ -71,8 +71,9 @@ def load_checkpoint(path: str | Path) -> dict:
 
 def training_state(*, epoch: int, config: dict, observation_dim: int, action_dim: int, actor, critic, statistics,
                    updater, collector, elapsed: float) -> dict:
-    """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds."""
-    return {
+    """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds
+    (``collector=None``: all but the collector's state, for :func:`policy_only`)."""
+    state = {
         "format": CHECKPOINT_FORMAT,
         "epoch": epoch,
         "elapsed": elapsed,
@@ -86,8 +87,23 @@ def training_state(*, epoch: int, config: dict, observation_dim: int, action_dim
         "observation_scale": statistics.scale,
         "critic_optimizer": updater.critic_optimizer.state_dict(),
         "critic_generator": updater.generator.get_state(),
-        "collector": collector.state_dict(),
     }
+    if collector is not None:
+        state["collector"] = collector.state_dict()
+    return state
+
+
+def policy_only(state: dict) -> dict:
+    """A training state without the collector (replay buffer, world model): enough for
+    :func:`load_policy` and evaluation, marked so a resume from it is refused."""
+    return {**{key: value for key, value in state.items() if key != "collector"}, "resumable": False}
+
+
+def check_resumable(state: dict, path: str | Path) -> None:
+    if not state.get("resumable", True):
+        raise ValueError(f"{str(path)!r} holds a policy only (the best periodic evaluation's), not a run to "
+                         f"resume: resume from the run's checkpoint.pt, or evaluate this one with "
+                         f"python -m unipolicy_rl.evaluate")
 
 
 def restore_training_state(state: dict, *, actor, critic, statistics, updater) -> None:

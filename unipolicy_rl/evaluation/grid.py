@@ -31,6 +31,12 @@ GRID_WALKING_MEAN = 3.0
 def walks_the_grid(mean_displacement: float, min_displacement: float) -> bool:
     """Grid mean >= :data:`GRID_WALKING_MEAN` m with every design >= :data:`WALKING_DISPLACEMENT` m."""
     return mean_displacement >= GRID_WALKING_MEAN and min_displacement >= WALKING_DISPLACEMENT
+def grid_score(mean_displacement: float, min_displacement: float) -> tuple[bool, float]:
+    """How a grid evaluation ranks against another (larger is better): a grid that walks
+    (:func:`walks_the_grid`) beats any that does not, then the higher grid mean wins."""
+    return walks_the_grid(mean_displacement, min_displacement), mean_displacement
+
+
 DEFAULT_MAX_ROBOTS = 32
 
 
