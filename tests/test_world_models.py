@@ -234,7 +234,8 @@ def test_truncated_branch_end_bootstraps_from_the_critic():
     torch.testing.assert_close(terminated["advantage"].reshape(3)[-1], rewards[-1] - value[2])
 
 
-def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False):
+def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False,
+                    start_epochs: int | None = None):
     from functools import partial
 
     from torchrl.collectors import Collector
@@ -250,7 +251,8 @@ def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool
     model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(16,))
     reference = BatchedWalkerEnv(1, full_state=True)
     reference.close()
-    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic)
+    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic,
+                                      start_epochs=start_epochs)
     return ModelBasedCollector(real, model, ModelTrainer(max_epochs=2), policy, reference, RewardWeights(),
                                imagination, stopping, seed=0, episode_length=10)
 
@@ -267,6 +269,21 @@ def test_model_based_collector_alternates_labelled_real_and_imagined_batches():
     assert "".join(pattern) == "RIIIRIII"
     assert shapes == {(10, 4)}  # 40 imagined steps as 10 branches of horizon 4
     assert collector.real_env_steps == 40 and len(collector.buffer) == 40
+
+
+def test_imagined_starts_can_be_kept_to_the_latest_real_epochs():
+    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=1), epochs=3, start_epochs=1)
+    for batch in collector:
+        if is_imagined(batch):
+            data = collector.buffer[: len(collector.buffer)]
+            latest = data[data["collected_in"] == collector.epoch]
+            assert 0 < len(latest) < len(data) or collector.epoch == 1
+            # Every branch starts at a state of the latest epoch's real episodes.
+            starts = batch["state"][:, 0]
+            assert (torch.cdist(starts, latest["state"]).min(-1).values < 1e-6).all()
+    collector.shutdown()
+    with pytest.raises(ValueError, match="start_epochs must be a positive integer or None, got 0"):
+        ImaginationSettings(start_epochs=0)
 
 
 @pytest.mark.parametrize("deterministic", [True, False])

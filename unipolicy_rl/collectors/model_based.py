@@ -33,6 +33,7 @@ from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_mod
 from unipolicy_rl.world_models.trainer import FitReport, ModelTrainer
 
 MODEL_FIT, IMAGINATION = 1, 2  # phases of an epoch, each reseeded (see epoch_seed)
+COLLECTED_IN = "collected_in"  # the real epoch a buffered transition came from (1 = the first)
 ROLLOUTS = ("branch", "episode")
 STOPPING_RULES = ("fixed", "metrpo")
 
@@ -102,6 +103,9 @@ class ImaginationSettings:
             ``episode`` (whole episodes from real start states, as the thesis did).
         horizon: branch length schedule (``episode`` uses the episode length).
         member_per_step: draw the predicting member anew at every step instead of once per trajectory.
+        start_epochs: draw imagined trajectories' start states from the real transitions of the
+            latest this many epochs only (None: the whole buffer). TRPO is on-policy: starts near
+            the current policy's own states make its imagined advantages about states it visits.
         deterministic: imagine with each member's mean prediction, without its noise (the members'
             spread is then the only randomness; for a model whose noise is independent per output).
         train_on_real: also take a policy update on each real batch.
@@ -112,6 +116,7 @@ class ImaginationSettings:
     rollout: str = "branch"
     horizon: HorizonSchedule = HorizonSchedule()
     member_per_step: bool = False
+    start_epochs: int | None = None
     deterministic: bool = False
     train_on_real: bool = False
     buffer_capacity: int = 200_000
@@ -123,6 +128,8 @@ class ImaginationSettings:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.start_epochs is not None and not (isinstance(self.start_epochs, int) and self.start_epochs >= 1):
+            raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
 
 
 def transitions(batch: TensorDictBase, state_of, memory_of=None) -> TensorDict:
@@ -205,7 +212,10 @@ class ModelBasedCollector:
         if self.real.epoch > self.model_fitted_for:  # resumed right after a real batch
             yield from self._model_phase()
         for batch in self.real:
-            self.buffer.extend(transitions(batch, self.model.layout.from_full, self.model.memory_of))
+            rows = transitions(batch, self.model.layout.from_full, self.model.memory_of)
+            if len(self.buffer) == 0 or COLLECTED_IN in self.buffer[:1].keys():  # (not into an older run's buffer)
+                rows.set(COLLECTED_IN, torch.full(rows.batch_size, self.real.epoch, dtype=torch.long))
+            self.buffer.extend(rows)
             yield batch
             yield from self._model_phase()
 
@@ -243,6 +253,9 @@ class ModelBasedCollector:
 
     def _start_sampler(self, data: TensorDictBase):
         pool = data if self.imagination.rollout == "branch" else data[data.get("episode_start")]
+        window = self.imagination.start_epochs
+        if window is not None and COLLECTED_IN in pool.keys():  # (a buffer from before the key: all of it)
+            pool = pool[pool.get(COLLECTED_IN) > self.real.epoch - window]
         pool = pool.select("state", "design")
 
         def sample(n: int) -> TensorDictBase:
