@@ -150,7 +150,40 @@ class PCEDynamics(DynamicsModel):
 
 
 @dataclass(frozen=True)
-class PCETrainer:
+class ClosedFormTrainer:
+    """What the closed-form PCE trainers share: the held-out share, the samples per fitted term
+    and the threads of a fit; ``fit`` has :class:`~unipolicy_rl.world_models.ModelTrainer`'s call
+    and report, and subclasses implement ``_fit``.
+
+    Args:
+        validation_fraction: share of the transitions held out.
+        oversampling: training samples per fitted term, at least.
+        num_threads: torch threads during a fit (then restored), or None to leave them.
+    """
+
+    validation_fraction: float = 0.2
+    oversampling: float = 2.0
+    num_threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 < self.validation_fraction < 1:
+            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
+        if not self.oversampling >= 1:
+            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
+        check_num_threads(self.num_threads)
+
+    def fit(self, model: DynamicsModel, transitions: TensorDictBase,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+        with torch_threads(self.num_threads):
+            return self._fit(model, transitions, generator)
+
+    def _fit(self, model, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class PCETrainer(ClosedFormTrainer):
     """Closed-form fit of a :class:`PCEDynamics`: same call and report as :class:`ModelTrainer`.
 
     The transitions are split (``validation_fraction`` held out), the input ranges are taken
@@ -167,28 +200,8 @@ class PCETrainer:
     too: on the data they are constant columns, copies of the intercept, and would make the
     normal equations singular.
 
-    Args:
-        validation_fraction: share of the transitions held out.
-        oversampling: training transitions per fitted term, at least.
-        num_threads: torch threads during a fit (then restored), or None to leave them.
+    Settings: :class:`ClosedFormTrainer`'s.
     """
-
-    validation_fraction: float = 0.2
-    oversampling: float = 2.0
-    num_threads: int | None = None
-
-    def __post_init__(self) -> None:
-        if not 0 < self.validation_fraction < 1:
-            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
-        if not self.oversampling >= 1:
-            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
-        check_num_threads(self.num_threads)
-
-    def fit(self, model: PCEDynamics, transitions: TensorDictBase,
-            generator: torch.Generator | None = None) -> FitReport:
-        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
-        with torch_threads(self.num_threads):
-            return self._fit(model, transitions, generator)
 
     @torch.no_grad()
     def _fit(self, model: PCEDynamics, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:

@@ -31,8 +31,9 @@ from tensordict import TensorDictBase
 from unipolicy_rl.world_models.ensemble import DynamicsModel
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce.basis import Basis
+from unipolicy_rl.world_models.pce.dynamics import ClosedFormTrainer
 from unipolicy_rl.world_models.pce.thesis import ThesisMEPCE, pack_by_element
-from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport, check_num_threads, torch_threads
+from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
 
 class ThesisPCEDynamics(DynamicsModel):
@@ -142,7 +143,7 @@ class ThesisPCEDynamics(DynamicsModel):
 
 
 @dataclass(frozen=True)
-class ThesisPCETrainer:
+class ThesisPCETrainer(ClosedFormTrainer):
     """Least-squares fit of a :class:`ThesisPCEDynamics` on the buffer: same call and report as
     :class:`~unipolicy_rl.world_models.ModelTrainer`.
 
@@ -154,28 +155,8 @@ class ThesisPCETrainer:
     predicted state, which for this model is its open-loop error, since it never reads the
     state it predicts from.
 
-    Args:
-        validation_fraction: share of the transitions held out.
-        oversampling: training samples per fitted term, at least.
-        num_threads: torch threads during a fit (then restored), or None to leave them.
+    Settings: :class:`~unipolicy_rl.world_models.pce.dynamics.ClosedFormTrainer`'s.
     """
-
-    validation_fraction: float = 0.2
-    oversampling: float = 2.0
-    num_threads: int | None = None
-
-    def __post_init__(self) -> None:
-        if not 0 < self.validation_fraction < 1:
-            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
-        if not self.oversampling >= 1:
-            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
-        check_num_threads(self.num_threads)
-
-    def fit(self, model: ThesisPCEDynamics, transitions: TensorDictBase,
-            generator: torch.Generator | None = None) -> FitReport:
-        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
-        with torch_threads(self.num_threads):
-            return self._fit(model, transitions, generator)
 
     @torch.no_grad()
     def _fit(self, model: ThesisPCEDynamics, transitions: TensorDictBase,
