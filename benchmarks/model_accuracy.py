@@ -152,8 +152,7 @@ def main() -> None:
     for name, (build, config) in candidates.items():
         torch.manual_seed(args.seed)
         model = build()
-        limits = {} if config == "pce" else {"max_epochs": args.max_epochs}  # the PCE is fitted in closed form
-        trainer = setup.make_trainer(config, num_threads=1, **limits)
+        trainer = setup.configured_trainer(config, threads=1, max_epochs=args.max_epochs)
         report = trainer.fit(model, transitions(train, model.layout.from_full),
                              torch.Generator().manual_seed(args.seed))
         finite = report.validation_error[torch.isfinite(report.validation_error)]

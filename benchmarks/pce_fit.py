@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 from env_throughput import raw_pybullet
 from pce_data import collect
-from surrogate_accuracy import configured
+from world_model_setup import configured
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import RobotSettings

@@ -41,9 +41,8 @@ from pathlib import Path
 
 import torch
 from env_throughput import raw_pybullet
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from pce_data import collect
+from world_model_setup import configured
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import PhysicsSettings, RobotSettings
@@ -52,21 +51,10 @@ from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, jensen_shannon, plo
 from unipolicy_rl.world_models.imagined import PredictNextState
 
 ROOT = Path(__file__).resolve().parent.parent
-CONFIGS = ROOT / "conf" / "world_model"
 HORIZONS = (6, 10, 25, 100)
 TRAINING_HORIZON = 25  # conf/world_model/*.yaml: imagination.horizon.end
 COLUMNS = {0: "x", 3: "vx"}  # the base's forward position and velocity in the state
 MODELS = {"one-step PCE": "pce", "ensemble": "moe"}
-
-
-def configured(world_model: str, layout: StateLayout, threads: int, max_epochs: int | None):
-    """``conf/world_model/<world_model>.yaml``'s model and trainer (the yaml is their one source)."""
-    config = OmegaConf.load(CONFIGS / f"{world_model}.yaml")
-    model = instantiate(config.model, _partial_=True, _convert_="all")(layout=layout, action_dim=4)
-    overrides = {"num_threads": threads}
-    if max_epochs is not None and "max_epochs" in config.trainer:
-        overrides["max_epochs"] = max_epochs
-    return model, instantiate(config.trainer, **overrides)
 
 
 def split(episodes, fraction: float = 0.8):

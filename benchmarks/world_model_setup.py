@@ -48,9 +48,24 @@ def make_trainer(world_model: str, **overrides):
     return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer, **overrides)
 
 
+def configured_trainer(world_model: str, threads: int, max_epochs: int | None = None):
+    """The yaml's trainer on ``threads`` threads, its epochs capped at ``max_epochs`` where it has
+    epochs (a closed-form PCE trainer has none)."""
+    overrides = {"num_threads": threads}
+    if max_epochs is not None and "max_epochs" in OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer:
+        overrides["max_epochs"] = max_epochs
+    return make_trainer(world_model, **overrides)
+
+
+def configured(world_model: str, layout: StateLayout, threads: int, max_epochs: int | None = None):
+    """``conf/world_model/<world_model>.yaml``'s model, predicting ``layout``, and its trainer
+    (:func:`configured_trainer`): the yaml is their one source."""
+    return default_model(layout, world_model), configured_trainer(world_model, threads, max_epochs)
+
+
 def default_model(layout: StateLayout, world_model: str = "moe") -> DynamicsModel:
     """``world_model=moe``'s model (a ``GaussianEnsemble``) from its yaml, predicting ``layout``;
-    ``world_model="pce"`` gives that yaml's one-step ``PCEDynamics`` the same way."""
+    another ``world_model`` (``"pce"``) gives that yaml's model the same way."""
     return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").model, _partial_=True, _convert_="all")(
         layout=layout, action_dim=4)
 

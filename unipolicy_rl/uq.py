@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from unipolicy_rl.command_line import run_checked, run_command_line
 from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT
@@ -178,20 +179,12 @@ def format_table(figures: dict[int, dict[str, dict]]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> dict:
     """Programmatic entry: bad arguments raise (ValueError, FileNotFoundError) instead of exiting."""
-    args = make_parser().parse_args(argv)
-    check_arguments(args)
-    return run(args)
+    return run_checked(make_parser, check_arguments, run, argv)
 
 
 def cli(argv: Sequence[str] | None = None) -> None:
     """Command-line entry: a bad argument or a missing file is a one-line usage error, not a traceback."""
-    parser = make_parser()
-    args = parser.parse_args(argv)
-    try:
-        check_arguments(args)
-    except (ValueError, FileNotFoundError) as error:
-        parser.error(str(error))
-    run(args)
+    run_command_line(make_parser, check_arguments, run, argv)
 
 
 if __name__ == "__main__":
