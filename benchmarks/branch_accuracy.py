@@ -36,8 +36,8 @@ from tensordict import TensorDict
 
 from unipolicy_rl.checkpoint import load_checkpoint
 from unipolicy_rl.envs import RobotSettings
+from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, relative_error
 from unipolicy_rl.world_models import StateLayout
-from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, relative_error
 
 X, X_DOT = 0, 3  # base forward position and velocity in the state
 
@@ -118,8 +118,8 @@ def main() -> None:
     results = {}
     for name in ("pce", "moe"):
         torch.manual_seed(args.seed)
-        model = setup.default_model(layout, name)
-        report = setup.make_trainer(name, num_threads=1).fit(model, fit, torch.Generator().manual_seed(args.seed))
+        model, trainer = setup.configured(name, threads=1)
+        report = trainer.fit(model, fit, torch.Generator().manual_seed(args.seed))
         print(f"{name}: {model.__class__.__name__}, fit {report.epochs} epoch(s) in {report.seconds:.1f} s, "
               f"validation MSE (standardised) median {report.validation_error.median():.3f}")
         for deterministic in (True, False):

@@ -37,9 +37,9 @@ import world_model_setup
 from env_throughput import raw_pybullet
 
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
-from unipolicy_rl.factories import NORMALIZED_OBSERVATION, make_collecting_policy, make_observation_norm
 from unipolicy_rl.networks import make_actor
-from unipolicy_rl.world_models import ImaginedWalkerEnv, ModelTrainer, StateLayout, make_world_model
+from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_collecting_policy, make_observation_norm
+from unipolicy_rl.world_models import ImaginedWalkerEnv, StateLayout, make_world_model
 
 REAL_STEPS = 100
 
@@ -58,8 +58,8 @@ def setup():
     collection = world_model_setup.collect(64)
     layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
     data = collection.transitions(layout.from_full)
-    model = world_model_setup.default_model(layout)
-    report = ModelTrainer(max_epochs=3).fit(model, data, torch.Generator().manual_seed(0))
+    model, trainer = world_model_setup.configured("moe", max_epochs=3)
+    report = trainer.fit(model, data, torch.Generator().manual_seed(0))
     observations = layout.observation(data["state"], data["design"])
     policy = make_collecting_policy(make_observation_norm(18, observations.mean(0), observations.std(0)),
                                     make_actor(18, 4, observation_key=NORMALIZED_OBSERVATION))

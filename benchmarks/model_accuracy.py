@@ -12,7 +12,7 @@ stopping ends the fit), one thread (accuracy does not depend on it):
 * ``moe, thesis state``: the same ensemble predicting only the thesis' 18-number observation
   (``world_model=moe world_model.model_state=thesis``);
 * ``moe_thesis``: the thesis' ``CellEnsemble`` (6 x 6 cells, position and velocity networks);
-* ``pce``: the one-step PCE of ``world_model=pce`` (``PCEDynamics``, fitted by its ``PCETrainer``).
+* ``pce``: the one-step PCE of ``world_model=pce`` (``PCEDynamics``, fitted by ``ClosedFormTrainer``).
 
 Predictions run open loop from every real state of a held-out episode, feeding the recorded
 actions, with a member drawn per trajectory as imagination draws it and the imagined env's
@@ -51,8 +51,8 @@ from env_throughput import raw_pybullet
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import PhysicsSettings, RobotSettings
+from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, normalised_mean_difference, relative_error
 from unipolicy_rl.world_models import StateLayout
-from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, normalised_mean_difference, relative_error
 from unipolicy_rl.world_models.imagined import PredictNextState
 
 matplotlib.use("Agg")
@@ -134,14 +134,12 @@ def main() -> None:
           f"{collection.actions_per_second:.0f} actions/s{cached}; {train.shape[0]} to fit, {test.shape[0]} held out "
           "without a physics fault")
 
-    robot = RobotSettings()
-    full = StateLayout.for_env(robot, "thesis", False, "full")
-    thesis = StateLayout.for_env(robot, "thesis", False, "thesis")
+    thesis = StateLayout.for_env(RobotSettings(), "thesis", False, "thesis")
     candidates = {
-        "moe": (lambda: setup.default_model(full), "moe"),
-        "moe, thesis state": (lambda: setup.default_model(thesis), "moe"),
-        "moe_thesis": (lambda: setup.thesis_model(thesis), "moe_thesis"),
-        "pce": (lambda: setup.default_model(full, "pce"), "pce"),
+        "moe": (lambda: setup.make_model("moe"), "moe"),
+        "moe, thesis state": (lambda: setup.make_model("moe", model_state="thesis"), "moe"),
+        "moe_thesis": (lambda: setup.make_model("moe_thesis"), "moe_thesis"),
+        "pce": (lambda: setup.make_model("pce"), "pce"),
     }
     generator = torch.Generator().manual_seed(args.seed)
     horizons = sorted(set(args.horizons))
@@ -152,7 +150,7 @@ def main() -> None:
     for name, (build, config) in candidates.items():
         torch.manual_seed(args.seed)
         model = build()
-        trainer = setup.configured_trainer(config, threads=1, max_epochs=args.max_epochs)
+        trainer = setup.make_trainer(config, threads=1, max_epochs=args.max_epochs)
         report = trainer.fit(model, transitions(train, model.layout.from_full),
                              torch.Generator().manual_seed(args.seed))
         finite = report.validation_error[torch.isfinite(report.validation_error)]

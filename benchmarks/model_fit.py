@@ -44,7 +44,7 @@ from env_throughput import raw_pybullet
 from torch import nn
 
 from unipolicy_rl.envs import RobotSettings
-from unipolicy_rl.world_models import CellEnsemble, ModelTrainer, StateLayout
+from unipolicy_rl.world_models import CellEnsemble, StateLayout
 
 
 def per_network_loop_epoch(model: CellEnsemble, data, members: list[int], batch_size: int, learning_rate: float,
@@ -102,15 +102,15 @@ def main() -> None:
           f"{collection.seconds:.1f} s at {collection.actions_per_second:.0f} actions/s "
           f"(2 workers x 32 robots{', cached from an earlier run' if collection.cached else ''})")
 
-    settings = {**setup.trainer_settings("moe_thesis"), "max_epochs": args.max_epochs}
+    settings = setup.trainer_settings("moe_thesis", max_epochs=args.max_epochs)
     print("trainer: " + ", ".join(f"{k}={v}" for k, v in settings.items() if k != "num_threads"))
     torch.manual_seed(args.seed)
-    model = setup.thesis_model(layout)
+    model = setup.make_model("moe_thesis")
     initial = copy.deepcopy(model.state_dict())
     reports = {}
     for threads in (2, 1):
         model.load_state_dict(initial)
-        trainer = ModelTrainer(**{**settings, "num_threads": threads})
+        trainer = setup.make_trainer("moe_thesis", threads=threads, max_epochs=args.max_epochs)
         cpu = time.process_time()
         reports[threads] = report = trainer.fit(model, data, torch.Generator().manual_seed(args.seed))
         cpu = time.process_time() - cpu

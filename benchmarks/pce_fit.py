@@ -21,7 +21,8 @@
    divisions per design axis) on the same real data, mean relative error of vx and x at 0.4 s
    (6 steps); a cell is blank where an element gets fewer episodes than terms (the fit would
    be underdetermined). Written to ``docs/figures/pce_order_divisions.png``.
-The raw PyBullet rate of this run is printed first (machines differ; see DESIGN.md §7).
+The raw PyBullet rate of this run is printed first (machines differ, and a VM's speed drifts:
+docs/results.md, "Environment throughput").
 """
 
 from __future__ import annotations
@@ -38,9 +39,9 @@ from world_model_setup import configured
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import RobotSettings
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
+from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, relative_error
+from unipolicy_rl.polynomial_chaos import ThesisMEPCE
 from unipolicy_rl.world_models import StateLayout
-from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, relative_error
-from unipolicy_rl.world_models.pce import ThesisMEPCE
 
 RANGES = (SE_LENGTH_RANGE, SE_DENSITY_RANGE)
 STEPS = (6, 10, 25, 100)
@@ -114,7 +115,7 @@ def accuracy(episodes: int, ensemble_epochs: int) -> None:
         results[label] = (predicted[..., 0], predicted[..., 3], report["seconds"])
     start = full.from_full(test["state"][:, 0])
     for label, world_model in (("one-step PCE", "pce"), ("ensemble", "moe")):
-        model, trainer = configured(world_model, full, threads=2, max_epochs=ensemble_epochs)
+        model, trainer = configured(world_model, threads=2, max_epochs=ensemble_epochs)
         fit = trainer.fit(model, transitions(train, full.from_full), torch.Generator().manual_seed(0))
         best = int(fit.elites[int(torch.argmin(fit.validation_error[fit.elites]))])
         rolled = open_loop(model, start, test["action"], test["design"], best)

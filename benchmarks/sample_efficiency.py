@@ -30,7 +30,9 @@ from unipolicy_rl.report.runs import discover, load_run, run_names
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("roots", nargs="+", type=Path, help="sweep or run directories")
-    parser.add_argument("--baseline", default="se", help="source the others are compared with (default: se)")
+    parser.add_argument("--baseline", default="se-trpo",
+                        help="what the others are compared with: a run name such as se-trpo (the default; runs from "
+                             "before runs were named so are grouped by source, e.g. se)")
     args = parser.parse_args(argv)
 
     paths, _ = discover(args.roots)
@@ -40,7 +42,8 @@ def main(argv: list[str] | None = None) -> dict:
     for path, name in zip(paths, run_names(paths, args.roots), strict=True):
         run = load_run(path, name)
         label = run.source or "?"
-        if run.config and run.config.get("world_model") and "moe_thesis" in str(run.overrides):
+        if run.config and run.config.get("world_model") and "moe_thesis" in str(run.overrides) and \
+                "run_name" not in run.config:  # (a named run says moe_thesis itself)
             label = f"{label}_thesis"
         runs_per_source[label] += 1
         walked = first_walking(run)

@@ -17,7 +17,7 @@ trajectory, the imagined env's fault rule: a non-finite or exploded prediction k
 state, and the trajectory counts as faulted from there on), with sampled noise (``sampled``)
 and without (``deterministic``, the drawn member's mean). At 6 steps (0.4 s, the thesis'
 horizon), 10, 25 (the longest imagined branch in training) and 100, for the base's forward
-position x and velocity vx (:mod:`unipolicy_rl.world_models.accuracy`):
+position x and velocity vx (:mod:`unipolicy_rl.evaluation.accuracy`):
 
 * the Jensen-Shannon divergence in bits between the held-out episodes' distribution and the
   surrogate's, with ``--bins`` bins of equal mass under their mixture. The row ``real vs
@@ -28,9 +28,12 @@ position x and velocity vx (:mod:`unipolicy_rl.world_models.accuracy`):
 * the share of rollouts that have faulted by then (imagination would have ended them; here
   their held state stays in the figures above).
 
-The figure (``--figure``, default ``docs/figures/surrogate_accuracy.png``): held-out mean and
-95% band of x and vx against each model's sampled rollouts, the 25-step horizon dotted.
-The raw PyBullet rate of this run is printed first (machines differ; see DESIGN.md §7).
+The figure (``--figure``, default ``docs/figures/surrogate_accuracy.png``, the one the docs show;
+with ``--quick``, ``outputs/benchmarks/surrogate_accuracy_quick.png``, so a quick check never
+overwrites the committed figure with a smaller run's): held-out mean and 95% band of x and vx
+against each model's sampled rollouts, the 25-step horizon dotted.
+The raw PyBullet rate of this run is printed first (machines differ, and a VM's speed drifts:
+docs/results.md, "Environment throughput").
 """
 
 from __future__ import annotations
@@ -46,11 +49,14 @@ from world_model_setup import configured
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import PhysicsSettings, RobotSettings
+from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, jensen_shannon, plot_bands, relative_error
+from unipolicy_rl.training.metrics_file import MODEL_VALIDATION_MSE
 from unipolicy_rl.world_models import StateLayout
-from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, jensen_shannon, plot_bands, relative_error
 from unipolicy_rl.world_models.imagined import PredictNextState
 
 ROOT = Path(__file__).resolve().parent.parent
+FIGURE = ROOT / "docs" / "figures" / "surrogate_accuracy.png"  # committed, shown by docs/surrogate_accuracy.md
+QUICK_FIGURE = ROOT / "outputs" / "benchmarks" / "surrogate_accuracy_quick.png"  # outputs/ is git-ignored
 HORIZONS = (6, 10, 25, 100)
 TRAINING_HORIZON = 25  # conf/world_model/*.yaml: imagination.horizon.end
 COLUMNS = {0: "x", 3: "vx"}  # the base's forward position and velocity in the state
@@ -113,10 +119,14 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="100 episodes, 5 samples, 5 ensemble epochs")
-    parser.add_argument("--figure", default=str(ROOT / "docs" / "figures" / "surrogate_accuracy.png"))
+    parser.add_argument("--figure", type=Path,
+                        help=f"where to write the figure (default: {FIGURE.relative_to(ROOT)}; "
+                             f"with --quick: {QUICK_FIGURE.relative_to(ROOT)})")
     args = parser.parse_args()
     if args.quick:
         args.episodes, args.samples, args.max_epochs = 100, 5, 5
+    if args.figure is None:
+        args.figure = QUICK_FIGURE if args.quick else FIGURE
     torch.set_num_threads(args.threads)
 
     rate = raw_pybullet(1000 if args.quick else 3000)[0]
@@ -137,12 +147,12 @@ def main() -> None:
     plotted, faults = {}, {}
     for name, world_model in MODELS.items():
         torch.manual_seed(args.seed)
-        model, trainer = configured(world_model, layout, args.threads, args.max_epochs)
+        model, trainer = configured(world_model, args.threads, args.max_epochs)
         report = trainer.fit(model, transitions(fit_episodes, layout.from_full),
                              torch.Generator().manual_seed(args.seed))
         print(f"{name} (world_model={world_model}): {model.__class__.__name__}, {model.members} members; fit "
               f"{report.epochs} epoch(s) in {report.seconds:.1f} s, validation MSE (standardised) of the elites "
-              f"{report.as_metrics()['model/validation_mse']:.3f}")
+              f"{report.as_metrics()[MODEL_VALIDATION_MSE]:.3f}")
         generator = torch.Generator().manual_seed(args.seed)
         for mode in ("sampled", "deterministic"):
             started = time.perf_counter()

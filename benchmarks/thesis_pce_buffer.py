@@ -5,8 +5,9 @@ against the samples required per term and the number of elements.
         [--divisions 1 7] [--oversampling 2 5 10 20] [--order 3]
 
 Takes the replay buffer a model-based run's checkpoint carries (the policy's episodes, with the
-memory columns of ``world_model=pce_thesis``), and fits ``ThesisPCETrainer`` as training does
-(20% of the transitions held out) for every (divisions, oversampling): the trainer's reported
+memory columns of ``world_model=pce_thesis``), and fits it with ``ClosedFormTrainer`` as training does
+(the model and trainer built as training builds them, ``world_model_setup.configured``; 20% of the
+transitions held out) for every (divisions, oversampling): the trainer's reported
 held-out error is the standardised MSE of the predicted state (1 = no better than each output's
 mean over the data), which for this model is its open-loop error.
 """
@@ -17,11 +18,8 @@ import argparse
 from pathlib import Path
 
 import torch
+import world_model_setup as setup
 from branch_accuracy import buffer_of
-
-from unipolicy_rl.envs import RobotSettings
-from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
-from unipolicy_rl.world_models import StateLayout, ThesisPCEDynamics, ThesisPCETrainer
 
 
 def main() -> None:
@@ -33,8 +31,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     data = buffer_of(args.run)
-    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "thesis")
-    probe = ThesisPCEDynamics(layout, 4, SE_LENGTH_RANGE, SE_DENSITY_RANGE)
+    probe = setup.make_model("pce_thesis")
     if data["state"].shape[-1] != probe.layout.size:
         raise ValueError(f"{args.run}: its buffer's states have {data['state'].shape[-1]} columns, a pce_thesis "
                          f"run's have {probe.layout.size} (the thesis state and its memory)")
@@ -43,9 +40,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for divisions in args.divisions:
         for oversampling in args.oversampling:
-            model = ThesisPCEDynamics(layout, 4, SE_LENGTH_RANGE, SE_DENSITY_RANGE, order=args.order,
-                                      divisions=divisions)
-            report = ThesisPCETrainer(oversampling=oversampling).fit(model, data, torch.Generator().manual_seed(0))
+            model, trainer = setup.configured("pce_thesis", overrides=(
+                f"world_model.model.order={args.order}", f"world_model.model.divisions={divisions}",
+                f"world_model.trainer.oversampling={oversampling}"))
+            report = trainer.fit(model, data, torch.Generator().manual_seed(0))
             print(f"| {divisions}x{divisions} | {oversampling:g} | {model.fitted_terms} | "
                   f"{float(report.validation_error[0]):.3f} | {report.train_loss:.3f} | {report.seconds:.1f} |")
 

@@ -23,6 +23,8 @@ from pathlib import Path
 
 from env_throughput import raw_pybullet
 
+from unipolicy_rl.training.metrics_file import COLLECT_TIME, EPOCH_TIMES, FILE_NAME, UPDATE_TIME
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -37,8 +39,10 @@ def train(epochs: int, overrides: list[str], run_dir: Path) -> list[dict[str, fl
     result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, check=False)
     if result.returncode != 0:
         raise RuntimeError(f"train.py failed:\n{result.stderr[-3000:]}")
-    with (run_dir / "metrics.csv").open() as file:
-        return [{key: float(value) for key, value in row.items()} for row in csv.DictReader(file)]
+    with (run_dir / FILE_NAME).open(newline="") as file:
+        # Only the timing columns: others are blank on rows that do not log them (eval/ between
+        # periodic evaluations), which float() refuses.
+        return [{name: float(row[name]) for name in EPOCH_TIMES} for row in csv.DictReader(file)]
 
 
 def main() -> None:
@@ -59,8 +63,8 @@ def main() -> None:
 
     raw = statistics.median(before + after)
     actions_per_epoch = 10 * 100  # episodes_per_epoch x episode_length, the thesis protocol
-    collect = [row["time/collect"] for row in rows]
-    update = [row["time/update"] for row in rows]
+    collect = [row[COLLECT_TIME] for row in rows]
+    update = [row[UPDATE_TIME] for row in rows]
     loop = sum(collect) + sum(update)
     bound = len(rows) * actions_per_epoch / raw
     print(f"raw PyBullet (1 core): {raw:.0f} actions/s (before {statistics.median(before):.0f}, "

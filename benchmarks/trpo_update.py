@@ -47,6 +47,7 @@ from tensordict import TensorDict
 
 from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
+from unipolicy_rl.training.metrics_file import KL, LINE_SEARCH_TRIES, STEP_ACCEPTED
 
 T = TypeVar("T")
 
@@ -115,8 +116,8 @@ class OurUpdate:
             self.actor(batch)
         wall, cpu, metrics = timed(self.updater.update, batch)
         note = (
-            f"accepted={metrics['train/step_accepted']:.0f}"
-            f" tries={metrics['train/line_search_tries']:.0f} kl={metrics['train/kl']:.4f}"
+            f"accepted={metrics[STEP_ACCEPTED]:.0f}"
+            f" tries={metrics[LINE_SEARCH_TRIES]:.0f} kl={metrics[KL]:.4f}"
         )
         return wall, cpu, note
 

@@ -1,12 +1,16 @@
 """What the world-model benchmarks share: real gait-plus-noise episodes on SE robots, and the
-models and trainer settings as ``conf/world_model/`` configures them.
+models and trainers exactly as a training run builds them.
 
-Not a benchmark itself: ``model_fit.py``, ``imagination_throughput.py`` and
-``model_accuracy.py`` import it. Every robot's design is drawn from the SE ranges
-(``DesignDistribution()``) at each episode start; its actions are the open-loop gait
-(:class:`~unipolicy_rl.envs.gait.SineGait`, which walks) plus Gaussian noise, clipped to
-[-1, 1], so the data both walks and varies. Episodes are 100 actions, stepped by
-``SleepingParallelEnv`` workers of ``BatchedWalkerEnv(full_state=True)`` robots.
+Not a benchmark itself: ``model_fit.py``, ``imagination_throughput.py``, ``model_accuracy.py``,
+``branch_accuracy.py``, ``pce_fit.py`` and ``surrogate_accuracy.py`` import it. A model and its
+trainer come from the config ``python train.py source=moe world_model=<name>`` composes (Hydra's
+``compose``, the benchmark's settings as overrides) and from the factory training uses
+(:func:`unipolicy_rl.factories.make_dynamics_model`), so a benchmark measures what a run
+trains. Every robot's design is drawn from the SE ranges (``DesignDistribution()``) at each
+episode start; its actions are the open-loop gait (:class:`~unipolicy_rl.envs.gait.SineGait`,
+which walks) plus Gaussian noise, clipped to [-1, 1], so the data both walks and varies.
+Episodes are 100 actions, stepped by ``SleepingParallelEnv`` workers of
+``BatchedWalkerEnv(full_state=True)`` robots.
 
 Collections are cached under ``/tmp/unipolicy_rl_benchmarks/`` (never the repository), keyed
 by their settings, so a rerun skips the physics; the cache keeps the collection's rate.
@@ -22,61 +26,79 @@ from pathlib import Path
 import numpy as np
 import torch
 from env_throughput import ReplayedActions
+from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, PhysicsSettings, SleepingParallelEnv
 from unipolicy_rl.envs.gait import SineGait
-from unipolicy_rl.world_models import CellEnsemble, DynamicsModel, StateLayout
+from unipolicy_rl.factories import make_dynamics_model
+from unipolicy_rl.world_models import Dynamics
+from unipolicy_rl.world_models.trainer import Trainer
 
 CACHE = Path("/tmp/unipolicy_rl_benchmarks")
 EPISODE_LENGTH = 100
-CONFIGS = Path(__file__).resolve().parent.parent / "conf" / "world_model"
+CONF = Path(__file__).resolve().parent.parent / "conf"
 
 
-def trainer_settings(world_model: str) -> dict:
-    """``conf/world_model/<world_model>.yaml``'s trainer settings (the yaml is their one source)."""
-    settings = OmegaConf.to_container(OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer)
+def world_model_config(world_model: str, threads: int | None = None, max_epochs: int | None = None,
+                       model_state: str | None = None, overrides: tuple[str, ...] = ()) -> DictConfig:
+    """The config of ``python train.py source=moe world_model=<world_model>`` with the
+    benchmark's settings as overrides: the trainer's ``num_threads`` (None: the yaml's), its
+    ``max_epochs`` where it has epochs (a closed-form PCE trainer has none), the model's
+    ``model_state`` (None: the yaml's) and any further ``overrides``."""
+    settings = [*(() if threads is None else (f"world_model.trainer.num_threads={threads}",)),
+                *(() if model_state is None else (f"world_model.model_state={model_state}",)), *overrides]
+    cfg = _composed(world_model, settings)
+    if max_epochs is not None and "max_epochs" in cfg.world_model.trainer:
+        cfg = _composed(world_model, [*settings, f"world_model.trainer.max_epochs={max_epochs}"])
+    return cfg
+
+
+def _composed(world_model: str, overrides: list[str]) -> DictConfig:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="config", overrides=["source=moe", f"world_model={world_model}", *overrides])
+
+
+def model_of(cfg: DictConfig, device: torch.device | str = "cpu") -> Dynamics:
+    """``cfg``'s world model, sized for its robot, through training's factory."""
+    return make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device=device)
+
+
+def trainer_of(cfg: DictConfig) -> Trainer:
+    """``cfg``'s world-model trainer (``ModelTrainer``, ``ClosedFormTrainer``), as training builds it."""
+    return instantiate(cfg.world_model.trainer)
+
+
+def make_model(world_model: str = "moe", model_state: str | None = None,
+               device: torch.device | str = "cpu") -> Dynamics:
+    """``world_model=<world_model>``'s model (``moe``: a ``GaussianEnsemble``; ``moe_thesis``: the
+    thesis' ``CellEnsemble``; ``pce``, ``pce_thesis``), predicting ``model_state`` (None: the yaml's)."""
+    return model_of(world_model_config(world_model, model_state=model_state), device)
+
+
+def make_trainer(world_model: str, threads: int | None = None, max_epochs: int | None = None) -> Trainer:
+    """``world_model=<world_model>``'s trainer on ``threads`` threads, its epochs capped at ``max_epochs``."""
+    return trainer_of(world_model_config(world_model, threads, max_epochs))
+
+
+def trainer_settings(world_model: str, threads: int | None = None, max_epochs: int | None = None) -> dict:
+    """The settings of :func:`make_trainer`'s trainer, for a benchmark's printout."""
+    settings = OmegaConf.to_container(world_model_config(world_model, threads, max_epochs).world_model.trainer)
     settings.pop("_target_")
     return settings
 
 
-def make_trainer(world_model: str, **overrides):
-    """``conf/world_model/<world_model>.yaml``'s trainer (``ModelTrainer`` or ``PCETrainer``), ``overrides`` applied."""
-    return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer, **overrides)
-
-
-def configured_trainer(world_model: str, threads: int, max_epochs: int | None = None):
-    """The yaml's trainer on ``threads`` threads, its epochs capped at ``max_epochs`` where it has
-    epochs (a closed-form PCE trainer has none)."""
-    overrides = {"num_threads": threads}
-    if max_epochs is not None and "max_epochs" in OmegaConf.load(CONFIGS / f"{world_model}.yaml").trainer:
-        overrides["max_epochs"] = max_epochs
-    return make_trainer(world_model, **overrides)
-
-
-def configured(world_model: str, layout: StateLayout, threads: int, max_epochs: int | None = None):
-    """``conf/world_model/<world_model>.yaml``'s model, predicting ``layout``, and its trainer
-    (:func:`configured_trainer`): the yaml is their one source."""
-    return default_model(layout, world_model), configured_trainer(world_model, threads, max_epochs)
-
-
-def default_model(layout: StateLayout, world_model: str = "moe") -> DynamicsModel:
-    """``world_model=moe``'s model (a ``GaussianEnsemble``) from its yaml, predicting ``layout``;
-    another ``world_model`` (``"pce"``) gives that yaml's model the same way."""
-    return instantiate(OmegaConf.load(CONFIGS / f"{world_model}.yaml").model, _partial_=True, _convert_="all")(
-        layout=layout, action_dim=4)
-
-
-def thesis_model(layout: StateLayout) -> CellEnsemble:
-    """``world_model=moe_thesis``'s model: 6 x 6 cells over the SE ranges (the yaml takes them
-    from ``evaluation``, which a lone yaml cannot resolve), 2 x 200 ReLU position and velocity networks."""
-    model = OmegaConf.load(CONFIGS / "moe_thesis.yaml").model
-    design = DesignDistribution()
-    return CellEnsemble(layout, 4, design.length_range, design.density_range, divisions=model.divisions,
-                        hidden=tuple(model.hidden), activation=model.activation)
+def configured(world_model: str, threads: int | None = None, max_epochs: int | None = None,
+               model_state: str | None = None, device: torch.device | str = "cpu",
+               overrides: tuple[str, ...] = ()) -> tuple[Dynamics, Trainer]:
+    """``world_model=<world_model>``'s model and trainer from one composed config (see
+    :func:`world_model_config` for the settings; ``overrides`` such as
+    ``world_model.model.divisions=1``)."""
+    cfg = world_model_config(world_model, threads, max_epochs, model_state, overrides)
+    return model_of(cfg, device), trainer_of(cfg)
 
 
 @dataclass

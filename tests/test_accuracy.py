@@ -6,7 +6,7 @@ import warnings
 import pytest
 import torch
 
-from unipolicy_rl.world_models.accuracy import (
+from unipolicy_rl.evaluation.accuracy import (
     NonFiniteSurrogateWarning,
     band,
     jensen_shannon,

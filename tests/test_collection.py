@@ -7,14 +7,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
-from unipolicy_rl.factories import (
-    NORMALIZED_OBSERVATION,
-    make_actor_critic,
-    make_collecting_policy,
-    make_collector,
-    make_observation_norm,
-)
+from unipolicy_rl.factories import make_collector
 from unipolicy_rl.observation_statistics import MIN_SCALE, ObservationStatistics, refresh_normalizer
+from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_actor_critic, make_collecting_policy, make_observation_norm
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

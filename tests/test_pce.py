@@ -1,6 +1,9 @@
 """Polynomial chaos: the Legendre basis, batched least squares, moments and the reduction step."""
 
+import ast
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -8,8 +11,7 @@ import torch
 from numpy.polynomial import legendre as npleg
 from tensordict import TensorDict
 
-from unipolicy_rl.world_models import StateLayout
-from unipolicy_rl.world_models.pce import (
+from unipolicy_rl.polynomial_chaos import (
     Basis,
     PolynomialChaos,
     UniformInputs,
@@ -21,6 +23,22 @@ from unipolicy_rl.world_models.pce import (
     squared_norms,
     variance,
 )
+from unipolicy_rl.world_models import StateLayout
+
+
+def imported_by(module: str, prefixes: tuple[str, ...]) -> list[str]:
+    """The modules under ``prefixes`` that importing ``module`` loads, in a fresh interpreter
+    (the test process has imported everything already)."""
+    script = (f"import sys, {module}; "
+              f"print(sorted(m for m in sys.modules if m.startswith({prefixes!r})))")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    return ast.literal_eval(result.stdout.strip().splitlines()[-1])
+
+
+def test_the_polynomial_chaos_library_imports_no_world_model_and_no_evaluation():
+    assert imported_by("unipolicy_rl.polynomial_chaos", ("unipolicy_rl.world_models", "unipolicy_rl.collectors",
+                                                         "unipolicy_rl.objectives", "unipolicy_rl.evaluation")) == []
 
 
 def gauss_legendre_grid(dimension: int, points: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -150,6 +168,8 @@ def test_the_reduction_keeps_the_mean_and_the_variance_it_should():
         (lambda: PolynomialChaos.fit(torch.rand(5, 3), torch.rand(5, 1), [0] * 3, [1] * 3, order=2),
          "underdetermined fit: 10 terms but only 5 samples"),
         (lambda: least_squares(torch.ones(4, 3), torch.full((4, 1), math.nan)), "targets has non-finite"),
+        (lambda: least_squares(torch.ones(4, 1), torch.ones(4, 1), dropped=torch.tensor([True])),
+         "dropped holds every term of a problem at zero"),
         (lambda: reduce(torch.zeros(4, 1), multi_indices(3, 1), [5]), "cannot drop input 5"),
         (lambda: reduce(torch.zeros(4, 1), multi_indices(3, 1), [0], "hermite"), "reduction must be one of"),
     ],
@@ -166,6 +186,64 @@ def test_an_ill_conditioned_fit_is_reported_not_silent():
     assert torch.isfinite(coefficients).all()
     assert diagnostics.fallbacks == 1 or diagnostics.condition.max() > 1e6
     torch.testing.assert_close(design @ coefficients, 2 * x + 1)
+
+
+def one_input_held(problems: int, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Samples ``[problems, n, 2]`` whose input 1 sits at 0.3 throughout, and noisy targets in input 0."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(problems, n, 2, generator=g, dtype=torch.float64) * 2 - 1
+    x[..., 1] = 0.3
+    y = torch.sin(3 * x[..., :1]) + 0.1 * torch.randn(problems, n, 1, generator=g, dtype=torch.float64)
+    return x, y
+
+
+def test_a_singular_fit_falls_back_to_a_solve_that_reaches_the_least_squares_optimum():
+    # An input that never varies repeats the constant term in its terms' columns: the Gram matrix is singular.
+    # torch's default CPU driver (gelsy) misjudges this matrix's rank and leaves a residual far above the optimum,
+    # silently: the fallback must use a driver that finds the rank.
+    x, y = one_input_held(4, 60, seed=0)
+    design = Basis.create(2, 3)(x)
+    coefficients, diagnostics = least_squares(design, y)
+    assert diagnostics.fallbacks == 4 and bool(diagnostics.failed.all())  # Cholesky could factor none of them
+    assert bool((diagnostics.condition > 1e12).all())  # and the condition says why
+    for p in range(4):
+        optimum = np.linalg.lstsq(design[p].numpy(), y[p].numpy(), rcond=None)[0]  # SVD-based
+        ours = design[p].numpy() @ coefficients[p].numpy()
+        np.testing.assert_allclose(np.linalg.norm(ours - y[p].numpy()),
+                                   np.linalg.norm(design[p].numpy() @ optimum - y[p].numpy()), rtol=1e-12)
+        np.testing.assert_allclose(ours, design[p].numpy() @ optimum, atol=1e-10)  # the optimum's fitted values
+
+
+def test_an_input_that_never_varies_has_its_terms_dropped_and_is_reported():
+    x, y = one_input_held(3, 60, seed=1)
+    # A sample of weight 0 is no part of the fit: where input 1 differs there, it still never varies.
+    x, y = torch.cat([x, torch.full((3, 1, 2), 0.9, dtype=torch.float64)], 1), torch.cat([y, y[:, :1]], 1)
+    weights = torch.ones(3, 61, dtype=torch.float64)
+    weights[:, -1] = 0
+    pce = PolynomialChaos.fit(x, y, [-1, -1], [1, 1], order=3, weights=weights)
+    diagnostics = pce.diagnostics
+    assert diagnostics.constant_inputs == (1,) and diagnostics.fallbacks == 0
+    involves = pce.basis.indices[:, 1] > 0
+    assert torch.equal(diagnostics.dropped, involves.expand(3, -1))
+    assert diagnostics.summary()["dropped_terms"] == 3 * int(involves.sum())
+    assert bool((pce.coefficients[:, involves] == 0).all())  # nothing attributed to the input that never moved
+    # The rest is the expansion in input 0 alone: the same least-squares optimum, the same moments.
+    alone = PolynomialChaos.fit(x[..., :1], y, [-1], [1], order=3, weights=weights)
+    torch.testing.assert_close(pce.coefficients[:, ~involves], alone.coefficients, atol=1e-12, rtol=0)
+    torch.testing.assert_close(pce.variance(), alone.variance(), atol=1e-12, rtol=0)
+    assert diagnostics.condition.max() < 10  # the condition of the kept terms, as if the others were absent
+    torch.testing.assert_close(diagnostics.condition, alone.diagnostics.condition)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_singular_cuda_fit_is_solved_on_the_cpu_and_handed_back_on_the_gpu():
+    # CUDA's only lstsq driver assumes full rank: the fallback solves there on the CPU.
+    x, y = one_input_held(2, 60, seed=2)
+    design = Basis.create(2, 3)(x)
+    on_gpu, diagnostics = least_squares(design.cuda(), y.cuda())
+    on_cpu, _ = least_squares(design, y)
+    assert on_gpu.device.type == "cuda" and diagnostics.fallbacks == 2
+    torch.testing.assert_close(on_gpu.cpu(), on_cpu)
 
 
 def test_a_float32_factor_falls_back_to_float64_where_it_cannot_factor():
@@ -196,11 +274,11 @@ def test_the_transposed_design_matrix_is_the_design_matrix():
 def test_the_one_step_pce_fits_a_toy_dynamics_to_a_stated_held_out_error():
     from test_world_models import TOY, one_step_r2, toy_transitions
 
-    from unipolicy_rl.world_models import PCEDynamics, PCETrainer
+    from unipolicy_rl.world_models import ClosedFormTrainer, PCEDynamics
 
     model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
                         interactions="all", members=3)
-    report = PCETrainer().fit(model, toy_transitions(4000, 0), torch.Generator().manual_seed(0))
+    report = ClosedFormTrainer().fit(model, toy_transitions(4000, 0), torch.Generator().manual_seed(0))
     held_out = toy_transitions(1000, 1)
     # Stated accuracy: the held-out one-step prediction explains >= 95% of the state change's variance.
     assert one_step_r2(model, held_out) >= 0.95, report
@@ -216,18 +294,18 @@ def test_the_one_step_pce_fits_a_toy_dynamics_to_a_stated_held_out_error():
     # Few data: only the leading (low-degree) terms are fitted, never an underdetermined system.
     small = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
                         interactions="all", members=1)
-    PCETrainer(oversampling=2.0).fit(small, toy_transitions(100, 2), torch.Generator().manual_seed(0))
+    ClosedFormTrainer(oversampling=2.0).fit(small, toy_transitions(100, 2), torch.Generator().manual_seed(0))
     assert int(small.fitted_terms) == 40 and (small.coefficients[:, 40:] == 0).all()
 
 
 def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_positions_move_on():
     from test_world_models import TOY, toy_transitions
 
-    from unipolicy_rl.world_models import PCEDynamics, PCETrainer
+    from unipolicy_rl.world_models import ClosedFormTrainer, PCEDynamics
 
     model = PCEDynamics(TOY, action_dim=2, order=3, members=1, margin=0.1)
     data = toy_transitions(2000, 0)
-    PCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+    ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
     velocities = torch.tensor(TOY.velocity_columns)
     seen = data["next_state"][:, velocities]
     low, high = seen.amin(0), seen.amax(0)
@@ -249,7 +327,7 @@ def test_the_one_step_pce_fits_real_robot_data_at_two_samples_per_term():
 
     from unipolicy_rl.collectors import transitions
     from unipolicy_rl.envs import BatchedWalkerEnv, RobotSettings
-    from unipolicy_rl.world_models import PCEDynamics, PCETrainer, StateLayout
+    from unipolicy_rl.world_models import ClosedFormTrainer, PCEDynamics, StateLayout
 
     env = BatchedWalkerEnv(20, full_state=True, episode_length=None)
     env.set_seed(0)
@@ -258,7 +336,7 @@ def test_the_one_step_pce_fits_real_robot_data_at_two_samples_per_term():
     env.close()
     layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
     model = PCEDynamics(layout, 4)
-    report = PCETrainer().fit(model, transitions(rollout, layout.from_full), torch.Generator().manual_seed(0))
+    report = ClosedFormTrainer().fit(model, transitions(rollout, layout.from_full), torch.Generator().manual_seed(0))
     assert int(model.fitted_terms) == 800
     assert torch.isfinite(report.validation_error).all() and (report.validation_error < 1.5).all()
 
@@ -282,10 +360,10 @@ def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 
     result = run_train(*TINY, "source=pce", "workers=1", "epochs=2", "evaluation.every=1",
-                       "world_model.imagination.steps_per_batch=60", "world_model.imagination.horizon.start=3",
-                       "world_model.imagination.horizon.end=3", "world_model.stopping.max_updates=2",
-                       "world_model.stopping.check_every=2", "world_model.stopping.check_starts=4",
-                       "world_model.stopping.check_horizon=3", f"hydra.run.dir={tmp_path}")
+                       "imagination.steps_per_batch=60", "imagination.horizon.start=3",
+                       "imagination.horizon.end=3", "imagination.stopping.max_updates=2",
+                       "imagination.stopping.check_every=2", "imagination.stopping.check_starts=4",
+                       "imagination.stopping.check_horizon=3", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()
     assert "model/validation_mse" in text and "imagined/reward_per_step" in text
@@ -311,7 +389,7 @@ def toy_episodes(n: int, seed: int, horizon: int = 6, held_at_bound: int | None 
 
 
 def test_the_thesis_me_pce_recovers_a_windowed_state_and_its_moments():
-    from unipolicy_rl.world_models.pce import ThesisMEPCE
+    from unipolicy_rl.polynomial_chaos import ThesisMEPCE
 
     design, actions, states = toy_episodes(3000, 0)
     pce = ThesisMEPCE((0.15, 0.2), (0.4, 0.6), action_dim=2, order=3, divisions=2, window=2)
@@ -366,13 +444,13 @@ def imagine(model, batch: TensorDict) -> torch.Tensor:
 
 def test_the_thesis_world_model_steps_its_memory_and_reproduces_held_out_episodes():
     from unipolicy_rl.collectors import transitions
-    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+    from unipolicy_rl.world_models import ClosedFormTrainer, ThesisPCEDynamics
 
     model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
                               horizon=6, order=3, divisions=2, window=2)
     assert model.layout.size == 2 + 1 + 2  # the state, the step, the one past action of a window of 2
     data = transitions(toy_batch(3000, 0), TOY_STATE.from_full, model.memory_of)
-    report = ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+    report = ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
     assert model.fitted_terms == model.terms and report.members_without_data == 0
     assert float(report.validation_error[0]) < 1e-6  # the toy state lies in the basis
     held_out = toy_batch(200, 1)
@@ -382,13 +460,13 @@ def test_the_thesis_world_model_steps_its_memory_and_reproduces_held_out_episode
 
 def test_the_thesis_world_model_fits_what_few_episodes_determine():
     from unipolicy_rl.collectors import transitions
-    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+    from unipolicy_rl.world_models import ClosedFormTrainer, ThesisPCEDynamics
 
     def fitted(episodes: int, divisions: int):
         model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
                                   horizon=6, order=3, divisions=divisions, window=2)
         data = transitions(toy_batch(episodes, 0), TOY_STATE.from_full, model.memory_of)
-        return model, ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
+        return model, ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
 
     # 300 episodes over 4 elements (60 per element and step, 84 terms): the leading terms, never an
     # underdetermined solve; they hold most of the toy state.
@@ -403,7 +481,7 @@ def test_the_thesis_world_model_fits_what_few_episodes_determine():
 
 def test_the_thesis_world_model_solves_an_element_whose_actions_sit_at_their_bound():
     from unipolicy_rl.collectors import transitions
-    from unipolicy_rl.world_models import ThesisPCEDynamics, ThesisPCETrainer
+    from unipolicy_rl.world_models import ClosedFormTrainer, ThesisPCEDynamics
 
     def saturated(n: int, seed: int) -> TensorDict:
         return toy_batch(n, seed, held_at_bound=1)  # the held action's terms repeat the constant
@@ -411,14 +489,14 @@ def test_the_thesis_world_model_solves_an_element_whose_actions_sit_at_their_bou
     model = ThesisPCEDynamics(TOY_STATE, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6),
                               horizon=6, order=3, divisions=1, window=2, ridge=0.0)
     data = transitions(saturated(600, 0), TOY_STATE.from_full, model.memory_of)
-    report = ThesisPCETrainer().fit(model, data, torch.Generator().manual_seed(0))
-    assert report.solve_fallbacks == 0  # the held action's terms are left out, the rest is well posed
+    report = ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
+    assert report.extras["solve_fallbacks"] == 0  # the held action's terms are left out, the rest is well posed
     held_out = saturated(100, 1)
     torch.testing.assert_close(imagine(model, held_out), held_out["next", "state"], atol=1e-3, rtol=0)
 
 
 def test_a_singular_element_is_solved_by_rank_revealing_least_squares_and_counted():
-    from unipolicy_rl.world_models.pce import ThesisMEPCE
+    from unipolicy_rl.polynomial_chaos import ThesisMEPCE
 
     pce = ThesisMEPCE((0.15, 0.2), (0.4, 0.6), action_dim=1, order=2, divisions=1, window=1)
     g = torch.Generator().manual_seed(0)
@@ -437,7 +515,7 @@ def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):
 
     result = run_train(*TINY, "source=pce", "world_model=pce_thesis", "workers=1", "epochs=2",
                        "evaluation.every=1", "world_model.model.divisions=2", "world_model.model.order=2",
-                       "world_model.imagination.steps_per_batch=60", "world_model.stopping.max_updates=2",
+                       "imagination.steps_per_batch=60", "imagination.stopping.max_updates=2",
                        f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()

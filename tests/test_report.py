@@ -66,10 +66,11 @@ def test_report_has_every_figure_and_the_table(report):
     for name, path in report.figures.items():
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
         assert f"]({path.name})" in text, f"report.md does not embed {path.name}"
-    assert list(report.groups) == ["de", "se"]
-    assert "| de | 2/2 |" in text and "| se | 2/2 |" in text
+    assert list(report.groups) == ["de-trpo", "se-trpo"]
+    assert "| de-trpo | 2/2 |" in text and "| se-trpo | 2/2 |" in text
     summary = report.summary_csv.read_text().splitlines()
-    assert summary[0].startswith("source,runs,finished") and [row.split(",")[0] for row in summary[1:]] == ["de", "se"]
+    assert summary[0].startswith("source,runs,finished")
+    assert [row.split(",")[0] for row in summary[1:]] == ["de-trpo", "se-trpo"]
     assert "None: every run finished." in text
     # The fixed-design run is a reference, not a source: it sets the best reward at its own design.
     reference = [run for run in report.runs if run.is_reference]
@@ -77,8 +78,8 @@ def test_report_has_every_figure_and_the_table(report):
     assert reference[0].design_distribution == DesignDistribution.fixed(0.15, 0.4)
     assert "trained at the design on 1 of 4 designs" in text
     # Every final policy of the two sources walked the wider grid, cached per run.
-    cached = sorted(path.name.split("-")[0] for path in (report.markdown.parent / "generalisation").glob("*.csv"))
-    assert cached == ["de_seed0", "de_seed1", "se_seed0", "se_seed1"]
+    cached = sorted(path.name.rsplit("-", 1)[0] for path in (report.markdown.parent / "generalisation").glob("*.csv"))
+    assert cached == ["de-trpo_seed0", "de-trpo_seed1", "se-trpo_seed0", "se-trpo_seed1"]
     assert "l in [0.1375, 0.2125] m, rho in [0.350, 0.650] kg/m" in text
 
 
@@ -95,32 +96,32 @@ def test_lost_jobs_are_reported_and_the_rest_still_is(report, sweeps, tmp_path):
     sweep = Path(shutil.copytree(sweeps[0], tmp_path / "sweep"))
     shutil.copytree(report.markdown.parent / "generalisation", tmp_path / "out" / "generalisation")
     # de seed 1 died in its first epochs: no checkpoint, no evaluation, one epoch logged.
-    (sweep / "de_seed1" / "checkpoint.pt").unlink()
-    shutil.rmtree(sweep / "de_seed1" / "evaluation")
-    metrics = sweep / "de_seed1" / "metrics.csv"
+    (sweep / "de-trpo_seed1" / "checkpoint.pt").unlink()
+    shutil.rmtree(sweep / "de-trpo_seed1" / "evaluation")
+    metrics = sweep / "de-trpo_seed1" / "metrics.csv"
     metrics.write_text("".join(metrics.read_text().splitlines(keepends=True)[:2]))
     # se seed 0 was killed while writing its last metrics row; se seed 1 never started.
-    metrics = sweep / "se_seed0" / "metrics.csv"
+    metrics = sweep / "se-trpo_seed0" / "metrics.csv"
     metrics.write_text(metrics.read_text()[:-40])
-    shutil.rmtree(sweep / "se_seed1")
+    shutil.rmtree(sweep / "se-trpo_seed1")
 
     partial = build_report([sweep], tmp_path / "out")
     assert {"curves_real_steps", "grid_reward", "generalisation"} <= set(partial.figures)
     missing = "\n".join(partial.missing)
-    assert "de_seed1: no checkpoint.pt: crashed, killed or still running before its first checkpoint" in missing
+    assert "de-trpo_seed1: no checkpoint.pt: crashed, killed or still running before its first checkpoint" in missing
     assert "(1 of 2 epochs logged)" in missing
-    assert "se_seed0/metrics.csv: its last row was cut short" in missing
+    assert "se-trpo_seed0/metrics.csv: its last row was cut short" in missing
     assert "job source=se seed=1: no folder: not started" in missing
     text = partial.markdown.read_text()
-    assert "| de | 1/2 |" in text and "| se | 1/1 |" in text
-    assert "de_seed1: no checkpoint.pt" in text
+    assert "| de-trpo | 1/2 |" in text and "| se-trpo | 1/1 |" in text
+    assert "de-trpo_seed1: no checkpoint.pt" in text
 
 
 def test_runs_of_different_robots_are_refused(sweeps, tmp_path, capsys):
     mixed = tmp_path / "mixed"
-    for name in ("de_seed0", "se_seed0"):
+    for name in ("de-trpo_seed0", "se-trpo_seed0"):
         shutil.copytree(sweeps[0] / name, mixed / name)
-    config = mixed / "se_seed0" / ".hydra" / "config.yaml"
+    config = mixed / "se-trpo_seed0" / ".hydra" / "config.yaml"
     edited = OmegaConf.load(config)
     edited.robot.reward.w_x = 2.0
     OmegaConf.save(edited, config)
@@ -128,19 +129,19 @@ def test_runs_of_different_robots_are_refused(sweeps, tmp_path, capsys):
         build_report([mixed], tmp_path / "out")
     assert main([str(mixed), "--out", str(tmp_path / "out")]) == 1
     error = capsys.readouterr().err.strip().splitlines()
-    assert len(error) == 1 and str(mixed) in error[0] and "se_seed0" in error[0]
+    assert len(error) == 1 and str(mixed) in error[0] and "se-trpo_seed0" in error[0]
 
 
 def test_unreadable_files_are_named_and_the_rest_reported(sweeps, tmp_path):
     sweep = Path(shutil.copytree(sweeps[0], tmp_path / "sweep"))
-    (sweep / "se_seed0" / "metrics.csv").write_bytes(b"\xff\xfe\x00garbage")
-    (sweep / "de_seed0" / "evaluation" / "designs.csv").write_text("length,density\nnot,numbers\n")
+    (sweep / "se-trpo_seed0" / "metrics.csv").write_bytes(b"\xff\xfe\x00garbage")
+    (sweep / "de-trpo_seed0" / "evaluation" / "designs.csv").write_text("length,density\nnot,numbers\n")
     (sweep / "multirun.yaml").write_text("hydra: [unexpected")
     partial = build_report([sweep], tmp_path / "out", wide_grid=0)
     missing = "\n".join(partial.missing)
     assert f"{sweep / 'multirun.yaml'}: could not be expanded" in missing
-    assert f"unreadable {sweep / 'se_seed0' / 'metrics.csv'}" in missing
-    assert f"unreadable {sweep / 'de_seed0' / 'evaluation' / 'designs.csv'}" in missing
+    assert f"unreadable {sweep / 'se-trpo_seed0' / 'metrics.csv'}" in missing
+    assert f"unreadable {sweep / 'de-trpo_seed0' / 'evaluation' / 'designs.csv'}" in missing
     assert "grid_reward" in partial.figures
 
 
@@ -183,7 +184,7 @@ def test_real_steps_and_wall_time_are_derived_when_not_logged():
     columns = ["epoch", REWARD, "time/collect", "time/update"]
     rows = [{"epoch": 1, REWARD: 1.0, "time/collect": 2.0, "time/update": 1.0},
             {"epoch": 2, REWARD: 2.0, "time/collect": 2.5, "time/update": 0.5}]
-    run = made_up_run("se_seed0", rows, columns)
+    run = made_up_run("se-trpo_seed0", rows, columns)
     assert list(real_env_steps(run)) == [1000, 2000]  # epoch x 10 episodes x 100 steps
     assert list(elapsed_seconds(run)) == [3.0, 6.0]
 

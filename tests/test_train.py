@@ -85,9 +85,9 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
     b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 4
     for name in ("actor", "critic"):
-        for key, value in a[name].items():
-            assert torch.equal(value, b[name][key]), f"{name}.{key} differs after resume"
-    torch.testing.assert_close(a["observation_loc"], b["observation_loc"], rtol=0, atol=0)
+        for key, value in a["learner"][name].items():
+            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    torch.testing.assert_close(a["policy"]["observation_loc"], b["policy"]["observation_loc"], rtol=0, atol=0)
     # The run ends with a saved policy that acts on a plain WalkerEnv observation.
     loaded = load_policy(tmp_path / "straight" / "checkpoint.pt")
     env = WalkerEnv()
@@ -209,13 +209,12 @@ def test_a_resume_takes_the_checkpoints_network_and_refuses_a_conflicting_overri
     assert load_checkpoint(tmp_path / "c" / "checkpoint.pt")["config"]["algo"]["actor_hidden"] == [16]
 
 
-MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every=1", "world_model.imagination.steps_per_batch=60",
-            "world_model.imagination.horizon.start=3", "world_model.imagination.horizon.end=5",
-            "world_model.imagination.horizon.first_epoch=1",
-            "world_model.imagination.horizon.last_epoch=3", "world_model.model.hidden=[16]",
+MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every=1", "imagination.steps_per_batch=60",
+            "imagination.horizon.start=3", "imagination.horizon.end=5", "imagination.horizon.first_epoch=1",
+            "imagination.horizon.last_epoch=3", "world_model.model.hidden=[16]",
             "world_model.model.members=3", "world_model.model.elites=2", "world_model.trainer.max_epochs=2",
-            "world_model.stopping.max_updates=4", "world_model.stopping.check_every=2",
-            "world_model.stopping.check_starts=4", "world_model.stopping.check_horizon=3"]
+            "imagination.stopping.max_updates=4", "imagination.stopping.check_every=2",
+            "imagination.stopping.check_starts=4", "imagination.stopping.check_horizon=3"]
 
 
 def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp_path):
@@ -230,19 +229,21 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 3
     for name in ("actor", "critic"):
-        for key, value in a[name].items():
-            assert torch.equal(value, b[name][key]), f"{name}.{key} differs after resume"
-    for key, value in a["collector"]["model"].items():
-        assert torch.equal(value, b["collector"]["model"][key]), f"world model {key} differs after resume"
-    assert a["collector"]["real"] == b["collector"]["real"] == {"epoch": 3, "real_env_steps": 60}
+        for key, value in a["learner"][name].items():
+            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    for key, value in a["world_model"].items():
+        assert torch.equal(value, b["world_model"][key]), f"world model {key} differs after resume"
+    assert a["collector"] == b["collector"] == {"epoch": 3, "real_env_steps": 60}
     with (tmp_path / "straight" / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
     real = [row for row in rows if row["imagined"] == "0.0"]
     imagined = [row for row in rows if row["imagined"] == "1.0"]
     assert [row["real_env_steps"] for row in real] == ["20.0", "40.0", "60.0"]
     assert real[0]["train/episode_reward"] and not imagined[0]["train/episode_reward"]
-    assert imagined[0]["imagined/reward_per_step"] and imagined[0]["model/validation_mse"]
+    assert imagined[0]["imagined/reward_per_step"] and real[0]["model/validation_mse"]
     assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every=1
+    # The run is named for what ran: the design, the world model and the algorithm.
+    assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 
 
 @pytest.mark.parametrize(
@@ -250,8 +251,8 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     [
         ("world_model=nope", "nope"),
         ("world_model.model.members=0", "members must be a positive integer, got 0"),
-        ("world_model.imagination.horizon.start=0", "horizon.start must be an integer >= 1, got 0"),
-        ("world_model.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
+        ("imagination.horizon.start=0", "horizon.start must be an integer >= 1, got 0"),
+        ("imagination.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
     ],
 )
 def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):
@@ -259,6 +260,20 @@ def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, ma
     assert result.returncode != 0
     assert match in result.stderr
     assert not (tmp_path / "metrics.csv").exists()
+
+
+def test_metrpo_with_a_model_whose_members_are_design_cells_is_refused_by_name(tmp_path):
+    result = run_train(*TINY, "source=moe", "world_model=moe_thesis", "imagination.stopping.kind=metrpo", "epochs=1",
+                       f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0
+    assert "CellEnsemble's members model different designs" in result.stderr
+    assert not (tmp_path / "metrics.csv").exists()
+
+
+def test_the_run_is_named_for_the_design_world_model_and_algorithm_that_ran():
+    named = {overrides: OmegaConf.create(run_train(*overrides, "--cfg", "job", "--resolve").stdout).run_name
+             for overrides in [("source=se",), ("source=moe", "world_model=pce"), ("source=pce", "design=de")]}
+    assert list(named.values()) == ["se-trpo", "se-pce-trpo", "de-pce-trpo"]
 
 
 def test_a_run_whose_updates_keep_being_skipped_stops_with_its_checkpoint(tmp_path):
@@ -282,3 +297,23 @@ def test_a_failure_inside_the_loop_shuts_the_worker_processes_down_instead_of_ha
     result = run_train_with(fail, *TINY, "workers=2", "epochs=5", f"hydra.run.dir={tmp_path}", timeout=120)
     assert result.returncode != 0
     assert "injected failure" in result.stderr
+
+
+def test_checkpoints_of_the_earlier_layouts_load_in_the_current_one(tmp_path):
+    """Format 2 kept the policy and learner parts at the top and a model-based run's model and buffer
+    inside the collector's state; format 1 had only the epoch. Both read as format 3."""
+    weights = {"actor": {"w": torch.ones(2)}, "critic": {"v": torch.zeros(1)}, "observation_statistics": {},
+               "critic_optimizer": {}, "critic_generator": torch.zeros(1), "observation_loc": torch.zeros(18),
+               "observation_scale": torch.ones(18)}
+    config = {"episodes_per_epoch": 10, "robot": {"episode_length": 100}}
+    model_based = {"format": 2, "epoch": 4, "config": config, **weights,
+                   "collector": {"real": {"epoch": 4, "real_env_steps": 4000}, "model": {"m": torch.ones(3)},
+                                 "buffer": {"b": 1}, "model_fitted_for": 3, "imagined_updates": 40}}
+    torch.save(model_based, tmp_path / "model_based.pt")
+    state = load_checkpoint(tmp_path / "model_based.pt")
+    assert state["format"] == 3 and state["collector"] == {"epoch": 4, "real_env_steps": 4000}
+    assert torch.equal(state["world_model"]["m"], torch.ones(3)) and state["replay_buffer"] == {"b": 1}
+    assert state["model_phase_skipped"]  # written before epoch 4's model fit
+    assert torch.equal(state["policy"]["actor"]["w"], state["learner"]["actor"]["w"])
+    torch.save({"epoch": 2, "config": config, **weights}, tmp_path / "format1.pt")
+    assert load_checkpoint(tmp_path / "format1.pt")["collector"] == {"epoch": 2, "real_env_steps": 2000}

@@ -9,8 +9,9 @@ import types
 import pytest
 import torch
 from test_evaluation import ENV_KWARGS, EPISODE_LENGTH, constant_policy
+from test_pce import imported_by
 
-from unipolicy_rl.world_models.pce import DesignResponse, gauss_legendre_designs, uniform_designs
+from unipolicy_rl.polynomial_chaos import DesignResponse, gauss_legendre_designs, uniform_designs
 
 LENGTHS, DENSITIES = (0.15, 0.20), (0.4, 0.6)
 
@@ -53,6 +54,11 @@ def test_bad_design_response_input_is_named():
         DesignResponse.fit(outside, episodes, LENGTHS, DENSITIES, order=2)
     with pytest.raises(ValueError, match="points must be a positive integer"):
         gauss_legendre_designs(0, LENGTHS, DENSITIES)
+
+
+def test_uq_builds_on_the_library_and_evaluation_not_on_world_models():
+    assert imported_by("unipolicy_rl.uq", ("unipolicy_rl.world_models", "unipolicy_rl.collectors",
+                                           "unipolicy_rl.objectives")) == []
 
 
 @pytest.fixture

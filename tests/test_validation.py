@@ -76,3 +76,62 @@ def test_a_bad_override_stops_train_py_before_any_robot_is_built(tmp_path, overr
     assert result.returncode != 0
     assert message in result.stderr
     assert not (tmp_path / "metrics.csv").exists()
+
+
+# ---- Each check in one place: validation's rules, which the factories that read the same keys run too
+
+
+def test_workers_must_share_the_episodes_evenly_one_rule_for_validation_and_the_collector_factory():
+    from unipolicy_rl.factories import robots_per_worker
+
+    cfg = composed(["episodes_per_epoch=9", "workers=2"])
+    message = r"episodes_per_epoch \(9\) must be a multiple of workers \(2\)"
+    with pytest.raises(ValueError, match=message):
+        validate_config(cfg)
+    with pytest.raises(ValueError, match=message):  # a direct call, validate_config never run
+        robots_per_worker(cfg)
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        robots_per_worker(composed(["workers=0"]))  # its own rule first: no division by zero
+    assert robots_per_worker(composed(["episodes_per_epoch=10", "workers=2"])) == 5
+
+
+def test_algo_name_is_one_rule_for_validation_and_the_learner_factory():
+    from unipolicy_rl.factories import make_learner
+
+    cfg = composed(["algo.name=ppo"])
+    with pytest.raises(ValueError, match=r"algo.name must be one of \['trpo'\], got 'ppo'"):
+        validate_config(cfg)
+    with pytest.raises(ValueError, match=r"algo.name must be one of \['trpo'\], got 'ppo'"):
+        make_learner(cfg, 18, 4)
+
+
+def test_source_kind_and_a_model_source_s_groups_are_checked_by_validation():
+    with pytest.raises(ValueError, match=r"source.kind must be one of \['model', 'real'\], got 'imagined'"):
+        validate_config(composed(["source.kind=imagined"]))
+    # make_dynamics_model relies on this check (train.py validates first).
+    with pytest.raises(ValueError, match="a model-based source needs a world_model config"):
+        validate_config(composed(["source=moe", "~world_model"]))
+    with pytest.raises(ValueError, match="a model-based source needs a imagination config"):
+        validate_config(composed(["source=moe", "~imagination"]))
+    validate_config(composed(["source=se", "world_model=moe"]))  # a real source ignores a world model
+
+
+def test_device_is_checked_once_by_its_resolver_which_validation_runs():
+    with pytest.raises(ValueError, match=r"device: device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got 'tpu'"):
+        validate_config(composed(["device=tpu"]))
+    validate_config(composed(["device=cpu"]))
+
+
+def test_check_settings_runs_only_the_rules_of_the_keys_named():
+    from unipolicy_rl.validation import JOINT_RULES, RULES, check_settings
+
+    cfg = composed(["epochs=-1", "episodes_per_epoch=9"])
+    check_settings(cfg, "seed", "workers")  # neither bad key named; the joint rule needs both of its keys
+    with pytest.raises(ValueError, match="epochs must be an integer >= 1, got -1"):
+        check_settings(cfg, "epochs")
+    with pytest.raises(ValueError, match="must be a multiple of workers"):
+        check_settings(cfg, "episodes_per_epoch", "workers")
+    # Every key a rule reads exists in the composed config of a model source.
+    model = composed(["source=moe"])
+    for key in [*RULES, *(key for joint in JOINT_RULES for key in joint)]:
+        assert OmegaConf.select(model, key) is not None, key

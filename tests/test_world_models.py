@@ -1,4 +1,4 @@
-"""World models: the state layout, the ensembles' fit, the imagined env and the model-based collector."""
+"""World models: the state layout, the ensembles' fit, the imagined env, the replay buffer and the imagination."""
 
 import pytest
 import torch
@@ -7,10 +7,11 @@ from torchrl.envs.utils import check_env_specs
 
 from unipolicy_rl.collectors import (
     HorizonSchedule,
+    Imagination,
     ImaginationSettings,
-    ModelBasedCollector,
     RealEpochCollector,
     StoppingRule,
+    TransitionBuffer,
     is_imagined,
 )
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
@@ -18,6 +19,7 @@ from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import TRPOLoss
 from unipolicy_rl.world_models import (
     CellEnsemble,
+    Dynamics,
     GaussianEnsemble,
     ImaginedWalkerEnv,
     ModelTrainer,
@@ -234,8 +236,10 @@ def test_truncated_branch_end_bootstraps_from_the_critic():
     torch.testing.assert_close(terminated["advantage"].reshape(3)[-1], rewards[-1] - value[2])
 
 
-def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False,
-                    start_epochs: int | None = None):
+def _tiny_model_based(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False,
+                      start_epochs: int | None = None):
+    """A model-based run's parts on a tiny robot batch: real epochs in a replay buffer, a model fitted
+    on it each epoch, and the imagination; returns the parts and, per epoch, its imagined batches."""
     from functools import partial
 
     from torchrl.collectors import Collector
@@ -251,62 +255,124 @@ def _tiny_collector(stopping: StoppingRule, epochs: int = 2, deterministic: bool
     model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(16,))
     reference = BatchedWalkerEnv(1, full_state=True)
     reference.close()
-    imagination = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic,
-                                      start_epochs=start_epochs)
-    return ModelBasedCollector(real, model, ModelTrainer(max_epochs=2), policy, reference, RewardWeights(),
-                               imagination, stopping, seed=0, episode_length=10)
+    settings = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic,
+                                   start_epochs=start_epochs, stopping=stopping)
+    imagination = Imagination(model, reference, RewardWeights(), settings, seed=0, episode_length=10)
+    buffer = TransitionBuffer(1000, model.layout.from_full)
+
+    def epochs_of_imagination():
+        with real:
+            for batch in real:
+                buffer.extend(batch, real.epoch)
+                ModelTrainer(max_epochs=2).fit(model, buffer.contents(), torch.Generator().manual_seed(real.epoch))
+                imagined = imagination.epoch(real.epoch, buffer.contents(), policy)
+                yield batch, imagined
+
+    return real, buffer, model, epochs_of_imagination()
 
 
-def test_model_based_collector_alternates_labelled_real_and_imagined_batches():
-    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=3))
-    pattern, shapes = [], set()
-    for batch in collector:
-        pattern.append("I" if is_imagined(batch) else "R")
-        if is_imagined(batch):
-            shapes.add(tuple(batch.shape))
-            assert batch["next", "truncated"][:, -1].all()  # branches end truncated, for the bootstrap
-    collector.shutdown()
-    assert "".join(pattern) == "RIIIRIII"
+def test_imagination_yields_truncated_branches_of_the_horizon_until_the_rule_stops():
+    real, buffer, _, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=3))
+    shapes, counts = set(), []
+    for batch, imagined in epochs:
+        assert not is_imagined(batch)
+        branches = list(imagined)
+        counts.append(len(branches))
+        for branch in branches:
+            assert is_imagined(branch)
+            shapes.add(tuple(branch.shape))
+            assert branch["next", "truncated"][:, -1].all()  # branches end truncated, for the bootstrap
+        assert imagined.metrics() == {"model/policy_updates": 3.0}
+    assert counts == [3, 3]
     assert shapes == {(10, 4)}  # 40 imagined steps as 10 branches of horizon 4
-    assert collector.real_env_steps == 40 and len(collector.buffer) == 40
+    assert real.real_env_steps == 40 and len(buffer) == 40
 
 
 def test_imagined_starts_can_be_kept_to_the_latest_real_epochs():
-    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=1), epochs=3, start_epochs=1)
-    for batch in collector:
-        if is_imagined(batch):
-            data = collector.buffer[: len(collector.buffer)]
-            latest = data[data["collected_in"] == collector.epoch]
-            assert 0 < len(latest) < len(data) or collector.epoch == 1
-            # Every branch starts at a state of the latest epoch's real episodes.
-            starts = batch["state"][:, 0]
-            assert (torch.cdist(starts, latest["state"]).min(-1).values < 1e-6).all()
-    collector.shutdown()
+    real, buffer, _, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=3, start_epochs=1)
+    for _, imagined in epochs:
+        batch = next(iter(imagined))
+        data = buffer.contents()
+        latest = data[data["collected_in"] == real.epoch]
+        assert 0 < len(latest) < len(data) or real.epoch == 1
+        # Every branch starts at a state of the latest epoch's real episodes.
+        starts = batch["state"][:, 0]
+        assert (torch.cdist(starts, latest["state"]).min(-1).values < 1e-6).all()
     with pytest.raises(ValueError, match="start_epochs must be a positive integer or None, got 0"):
         ImaginationSettings(start_epochs=0)
 
 
 @pytest.mark.parametrize("deterministic", [True, False])
 def test_deterministic_imagination_follows_each_members_mean_prediction(deterministic):
-    collector = _tiny_collector(StoppingRule(kind="fixed", max_updates=1), epochs=1, deterministic=deterministic)
-    batch = next(b for b in collector if is_imagined(b))
-    collector.shutdown()
-    mean = collector.model.predict(batch["state"], batch["action"], batch["design"], batch["member"].squeeze(-1),
-                                   deterministic=True)
+    _, _, model, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=1,
+                                            deterministic=deterministic)
+    _, imagined = next(epochs)
+    batch = next(iter(imagined))
+    mean = model.predict(batch["state"], batch["action"], batch["design"], batch["member"].squeeze(-1),
+                         deterministic=True)
     matches = torch.isclose(batch["next", "state"], mean, atol=1e-5).all(-1)
     physics = ~batch["next", "physics_fault"].squeeze(-1)  # a faulted step keeps the last state instead
     assert physics.sum() > 20
     assert matches[physics].all() if deterministic else not matches[physics].any()
 
 
+def _imagined_updates(returns_per_check, monkeypatch, max_updates=10, check_every=2):
+    """How many updates an epoch runs when successive checks of the members' returns give these."""
+    _, _, _, epochs = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=max_updates, check_every=check_every,
+                                                     check_starts=4, check_horizon=3), epochs=1)
+    _, imagined = next(epochs)
+    checks = iter(torch.tensor(r, dtype=torch.float32) for r in returns_per_check)
+    monkeypatch.setattr(imagined.imagination, "member_returns", lambda policy, starts: next(checks))
+    return sum(1 for _ in imagined), imagined.metrics()
+
+
+def test_the_metrpo_rule_continues_while_every_member_sees_the_return_improve(monkeypatch):
+    rising = [[float(k)] * 3 for k in range(10)]
+    updates, metrics = _imagined_updates(rising, monkeypatch)
+    assert updates == 10 and metrics["model/improving_members"] == 1.0
+
+
+def test_the_metrpo_rule_stops_when_members_see_the_return_fall(monkeypatch):
+    # 2 of 3 members see it fall at the first check: 1/3 < 0.7 stops the epoch after check_every updates.
+    updates, metrics = _imagined_updates([[5.0, 5.0, 5.0], [6.0, 4.0, 4.0]], monkeypatch)
+    assert updates == 2 and metrics["model/improving_members"] == pytest.approx(1 / 3)
+
+
+def test_the_metrpo_comparison_counts_improvement_not_decline():
+    rule = StoppingRule(kind="metrpo", min_improving_fraction=0.7)
+    baseline = torch.tensor([1.0, 1.0, 1.0])
+    assert rule.keeps_going(baseline, baseline + 1) == (True, 1.0)
+    assert rule.keeps_going(baseline, baseline - 1) == (False, 0.0)
+    assert rule.keeps_going(baseline, baseline) == (False, 0.0)  # no change is not an improvement
+
+
 def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():
     # The policy never changes between checks, so no member sees an improvement: the rule
     # stops each epoch at its first check, after check_every updates.
-    collector = _tiny_collector(StoppingRule(kind="metrpo", max_updates=10, check_every=2, check_starts=4,
-                                            check_horizon=3))
-    pattern = "".join("I" if is_imagined(batch) else "R" for batch in collector)
-    collector.shutdown()
-    assert pattern == "RIIRII"
+    _, _, _, epochs = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=10, check_every=2, check_starts=4,
+                                                     check_horizon=3))
+    assert [sum(1 for _ in imagined) for _, imagined in epochs] == [2, 2]
+
+
+def test_every_member_votes_in_the_metrpo_rule_not_only_the_elites():
+    model, data = _trained_model()  # 3 members, 2 elites
+    assert isinstance(model, Dynamics)
+    assert model.voting_members.tolist() == [0, 1, 2] and len(model.elite_members) == 2
+    reference = BatchedWalkerEnv(1, full_state=True)
+    reference.close()
+    returns = Imagination(model, reference, RewardWeights(), ImaginationSettings(), 0, 10).member_returns(
+        make_actor(18, 4), _starts(data)(3))
+    assert returns.shape == (3,)
+
+
+def test_metrpo_is_refused_for_a_model_whose_members_are_design_cells():
+    model = CellEnsemble(THESIS_FROM_FULL, 4, (0.15, 0.2), (0.4, 0.6), divisions=2, hidden=(8,))
+    assert isinstance(model, Dynamics) and model.voting_members is None
+    reference = BatchedWalkerEnv(1, full_state=True)
+    reference.close()
+    with pytest.raises(ValueError, match="CellEnsemble.*stopping.kind=fixed"):
+        Imagination(model, reference, RewardWeights(), ImaginationSettings(stopping=StoppingRule(kind="metrpo")), 0, 10)
+    Imagination(model, reference, RewardWeights(), ImaginationSettings(stopping=StoppingRule(kind="fixed")), 0, 10)
 
 
 def test_device_setting_is_checked_and_auto_falls_back_to_the_cpu():
@@ -332,3 +398,20 @@ def test_member_returns_survive_a_trajectory_that_faults():
                              make_actor(18, 4), _starts(data)(3), horizon=4)
     reference.close()
     assert returns.shape == (3,) and torch.isfinite(returns).all()
+
+
+def test_a_row_assigned_a_member_keeps_it_after_its_fault():
+    """TorchRL restarts a faulted row with only the ``_reset`` mask: the row must come back under
+    its own member, else a comparison across members mixes them."""
+    model, data = _trained_model()
+    with torch.no_grad():
+        model.network[-1].bias[1, :, :] = float("nan")  # member 1 faults at every step
+    reference = BatchedWalkerEnv(1, full_state=True)
+    reference.close()
+    starts = _starts(data)(3)
+    members = torch.tensor([0, 1, 2])
+    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), deterministic=True), reference,
+                            lambda k: starts[torch.arange(k) % 3], batch_size=3, members=members)
+    rollout = env.rollout(4, make_actor(18, 4), break_when_any_done=False)
+    assert rollout["next", "physics_fault"][1].all() and not rollout["next", "physics_fault"][[0, 2]].any()
+    assert (rollout["member"].squeeze(-1) == members.unsqueeze(-1)).all()

@@ -1,16 +1,22 @@
 """Checkpoints: written atomically, resumable, and loadable as a policy in one call.
 
-A checkpoint holds everything a run needs to continue bit-for-bit (weights, critic
-optimiser, observation statistics, the critic's minibatch RNG, the collector's position
-and, for a model-based run, its world model and replay buffer) and its resolved config, so
-``load_policy(path)`` can rebuild the policy without any other file. Its layout is defined
-once, by :func:`training_state` and :func:`restore_training_state`.
+A checkpoint holds everything a run needs to continue bit-for-bit (the learner's state: weights,
+optimisers, observation statistics, RNG; the collector's position; for a model-based run its
+world model and replay buffer; the best periodic evaluation so far) and its resolved config, so
+``load_policy(path)`` can rebuild the policy without any other file. Its layout is defined here
+and nowhere else: :func:`training_state` writes it, :func:`restore_training_state` reads it
+back, :func:`policy_only` cuts it to the policy, and older formats are read through
+:func:`_upgraded`.
+
+This module imports no collector, world model or learner: loading a policy to run or evaluate
+it needs only :mod:`unipolicy_rl.policy` and the env.
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,13 +28,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from unipolicy_rl.factories import (
-    config_from_dict,
-    env_kwargs,
-    make_actor_critic,
-    make_collecting_policy,
-    make_observation_norm,
-)
+from unipolicy_rl.envs.config import env_kwargs
+from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
@@ -49,11 +50,13 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     return path
 
 
-# 1: weights, statistics, critic optimiser and epoch; 2: adds the collector's state.
-CHECKPOINT_FORMAT = 2
+# 1: weights, statistics, critic optimiser and epoch; 2: adds the collector's state; 3: the policy,
+# the learner, the collector and the world model each under their own key.
+CHECKPOINT_FORMAT = 3
 
 
 def load_checkpoint(path: str | Path) -> dict:
+    """The checkpoint at ``path`` in the current layout (older formats are upgraded on reading)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {str(path)!r}")
@@ -61,18 +64,21 @@ def load_checkpoint(path: str | Path) -> dict:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # pickle, zip and torch errors alike: the file is not ours or is cut short
         raise ValueError(f"{str(path)!r} is not a readable checkpoint ({type(err).__name__}: {err})") from None
-    if not isinstance(state, dict) or "actor" not in state or "config" not in state:
+    if not isinstance(state, dict) or not ({"actor", "policy"} & state.keys()) or "config" not in state:
         raise ValueError(f"{str(path)!r} is not a unipolicy_rl checkpoint (no policy weights and config in it)")
     if state.get("format", 1) > CHECKPOINT_FORMAT:
         raise ValueError(f"{str(path)!r} has checkpoint format {state['format']}, newer than this version's "
                          f"{CHECKPOINT_FORMAT}: update unipolicy_rl to read it")
-    return state
+    return _upgraded(state)
 
 
-def training_state(*, epoch: int, config: dict, observation_dim: int, action_dim: int, actor, critic, statistics,
-                   updater, collector, elapsed: float) -> dict:
-    """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds
-    (``collector=None``: all but the collector's state, for :func:`policy_only`)."""
+def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim: int, action_dim: int, learner,
+                   collector, world=None, best_evaluation: dict | None = None) -> dict:
+    """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds.
+
+    ``learner`` is a :class:`~unipolicy_rl.learners.Learner`, ``collector`` the real collector,
+    ``world`` a model-based run's :class:`~unipolicy_rl.factories.WorldModelParts` (or None), and
+    ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst)."""
     state = {
         "format": CHECKPOINT_FORMAT,
         "epoch": epoch,
@@ -80,23 +86,24 @@ def training_state(*, epoch: int, config: dict, observation_dim: int, action_dim
         "config": config,
         "observation_dim": observation_dim,
         "action_dim": action_dim,
-        "actor": actor.state_dict(),
-        "critic": critic.state_dict(),
-        "observation_statistics": statistics.state_dict(),
-        "observation_loc": statistics.loc,
-        "observation_scale": statistics.scale,
-        "critic_optimizer": updater.critic_optimizer.state_dict(),
-        "critic_generator": updater.generator.get_state(),
+        "policy": learner.policy_state(),
+        "learner": learner.state_dict(),
+        "collector": collector.state_dict(),
+        "best_evaluation": best_evaluation,
     }
-    if collector is not None:
-        state["collector"] = collector.state_dict()
+    if world is not None:
+        state["world_model"] = world.model.state_dict()
+        state["replay_buffer"] = world.buffer.state_dict()
     return state
 
 
+RESUME_ONLY = ("learner", "collector", "world_model", "replay_buffer")
+
+
 def policy_only(state: dict) -> dict:
-    """A training state without the collector (replay buffer, world model): enough for
+    """A training state cut to the policy (no learner, collector, world model or buffer): enough for
     :func:`load_policy` and evaluation, marked so a resume from it is refused."""
-    return {**{key: value for key, value in state.items() if key != "collector"}, "resumable": False}
+    return {**{key: value for key, value in state.items() if key not in RESUME_ONLY}, "resumable": False}
 
 
 def check_resumable(state: dict, path: str | Path) -> None:
@@ -106,20 +113,85 @@ def check_resumable(state: dict, path: str | Path) -> None:
                          f"python -m unipolicy_rl.evaluate")
 
 
-def restore_training_state(state: dict, *, actor, critic, statistics, updater) -> None:
-    """Loads what :func:`training_state` saved into the learner's parts (the collector loads
-    ``state["collector"]`` itself, see :func:`collector_state`)."""
-    actor.load_state_dict(state["actor"])
-    critic.load_state_dict(state["critic"])
-    statistics.load_state_dict(state["observation_statistics"])
-    updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
-    updater.generator.set_state(state["critic_generator"])
+def restore_training_state(state: dict, *, learner, collector, world=None) -> None:
+    """Loads what :func:`training_state` saved back into the run's parts."""
+    learner.load_state_dict(state["learner"])
+    collector.load_state_dict(state["collector"])
+    if world is not None:
+        world.model.load_state_dict(state["world_model"])
+        world.buffer.load_state_dict(state["replay_buffer"])
+    if state.get("model_phase_skipped"):
+        print(f"resume: this checkpoint (format 2) was written before epoch {state['epoch']}'s model fit and "
+              f"imagined updates; the run goes on with epoch {state['epoch'] + 1}")
+
+
+class RunCheckpoints:
+    """A run folder's checkpoints: ``checkpoint.pt`` (the whole run, resumable) and ``best.pt``
+    (the policy alone of the best periodic evaluation, kept apart: a run that walks and then falls
+    back still hands over its best policy). Both carry the run's wall time so far, over resumes.
+
+    Args:
+        run_dir: the run folder.
+        config: the run's resolved config (a plain dict).
+        observation_dim, action_dim: the env's sizes.
+        learner, collector, world: the run's parts (``world`` None for a real source).
+        elapsed_before: wall seconds of the run before this process (a resumed run's).
+    """
+
+    def __init__(self, run_dir: Path, *, config: dict, observation_dim: int, action_dim: int, learner, collector,
+                 world=None, elapsed_before: float = 0.0) -> None:
+        self.path, self.best_path = run_dir / "checkpoint.pt", run_dir / "best.pt"
+        self.parts = {"config": config, "observation_dim": observation_dim, "action_dim": action_dim,
+                      "learner": learner, "collector": collector, "world": world}
+        self.elapsed_before = elapsed_before
+        self.started = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.perf_counter() - self.started
+
+    def state(self, best_evaluation: dict | None) -> dict:
+        return training_state(epoch=self.parts["collector"].epoch, elapsed=self.elapsed(),
+                              best_evaluation=best_evaluation, **self.parts)
+
+    def save(self, best_evaluation: dict | None) -> Path:
+        return save_checkpoint(self.path, self.state(best_evaluation))
+
+    def save_best(self, best_evaluation: dict) -> Path:
+        return save_checkpoint(self.best_path, policy_only(self.state(best_evaluation)))
+
+
+def _upgraded(state: dict) -> dict:
+    """A format 1 or 2 checkpoint in the current layout (format 2 kept the policy's and the
+    learner's parts at the top and a model-based collector's model and buffer inside its state;
+    format 1 had no collector state, only the epoch)."""
+    if state.get("format", 1) >= 3:
+        return state
+    old = dict(state)
+    state = {key: old[key] for key in ("epoch", "elapsed", "config", "observation_dim", "action_dim", "resumable",
+                                       "best_evaluation") if key in old}
+    state["format"] = CHECKPOINT_FORMAT
+    state["policy"] = {key: old[key] for key in ("actor", "observation_loc", "observation_scale") if key in old}
+    if not old.get("resumable", True):  # a policy alone (best.pt)
+        return state
+    learner_keys = ("actor", "critic", "observation_statistics", "critic_optimizer", "critic_generator")
+    state["learner"] = {key: old[key] for key in learner_keys if key in old}
+    collector = old.get("collector")
+    if collector is None:  # format 1: real data only, just the epoch
+        config = old["config"]
+        frames = config.get("episodes_per_epoch", 0) * config.get("robot", {}).get("episode_length", 0)
+        collector = {"epoch": old["epoch"], "real_env_steps": old["epoch"] * frames}
+    if "real" in collector:  # a model-based run's collector
+        state["world_model"], state["replay_buffer"] = collector["model"], collector["buffer"]
+        state["model_phase_skipped"] = int(collector["model_fitted_for"]) < int(collector["real"]["epoch"])
+        collector = collector["real"]
+    state["collector"] = collector
+    return state
 
 
 # The settings a checkpoint's weights and model were built for: a resume takes them from the
 # checkpoint. (A dotted key names one setting; a bare group name covers the group.)
-ARCHITECTURE_KEYS = ("algo.actor_hidden", "algo.critic_hidden", "algo.activation", "robot", "world_model.model",
-                     "world_model.model_state")
+ARCHITECTURE_KEYS = ("algo.name", "algo.actor_hidden", "algo.critic_hidden", "algo.activation", "robot",
+                     "world_model.model", "world_model.model_state")
 
 
 def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str], path: str | Path) -> DictConfig:
@@ -159,15 +231,6 @@ def _show(value) -> str:
     return repr(OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value)
 
 
-def collector_state(state: dict) -> dict:
-    """The collector's saved state; a format-1 checkpoint (real data only) had just its epoch."""
-    if "collector" in state:
-        return state["collector"]
-    config = state["config"]
-    frames = config["episodes_per_epoch"] * config["robot"]["episode_length"]
-    return {"epoch": state["epoch"], "real_env_steps": state["epoch"] * frames}
-
-
 @dataclass
 class LoadedPolicy:
     """A trained policy, ready to act.
@@ -193,9 +256,10 @@ class LoadedPolicy:
 def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     """Rebuilds the trained policy from a checkpoint: ``load_policy(p).act(obs)``."""
     state = load_checkpoint(path)
-    cfg = config_from_dict(state["config"])
+    cfg = OmegaConf.create(state["config"])
+    policy = state["policy"]
     actor, _ = make_actor_critic(cfg, state["observation_dim"], state["action_dim"])
-    actor.load_state_dict(state["actor"])
-    normalizer = make_observation_norm(state["observation_dim"], state["observation_loc"], state["observation_scale"])
+    actor.load_state_dict(policy["actor"])
+    normalizer = make_observation_norm(state["observation_dim"], policy["observation_loc"], policy["observation_scale"])
     policy = make_collecting_policy(normalizer, actor).to(device).eval()
     return LoadedPolicy(policy, env_kwargs(cfg), state["config"], state["epoch"])

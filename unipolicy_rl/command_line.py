@@ -11,9 +11,22 @@ import argparse
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from unipolicy_rl.envs import DesignDistribution
+
 Parser = Callable[[], argparse.ArgumentParser]
 Check = Callable[[argparse.Namespace], None]
 Run = Callable[[argparse.Namespace], Any]
+
+
+def check_checkpoint_arguments(args: argparse.Namespace) -> None:
+    """The arguments every checkpoint command shares: ``--num-robots``, the checkpoint file, and
+    the design box (``--length-range``, ``--density-range``)."""
+    if args.num_robots is not None and args.num_robots < 1:
+        raise ValueError(f"--num-robots must be >= 1, got {args.num_robots}")
+    if not args.checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint file not found: {args.checkpoint}")
+    # DesignDistribution names an empty or non-positive range.
+    DesignDistribution(tuple(args.length_range), tuple(args.density_range))
 
 
 def run_checked(make_parser: Parser, check_arguments: Check, run: Run, argv: Sequence[str] | None) -> Any:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from unipolicy_rl.command_line import run_checked, run_command_line
+from unipolicy_rl.command_line import check_checkpoint_arguments, run_checked, run_command_line
 from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.evaluation import (
@@ -57,12 +57,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--grid must be >= 1 (designs per axis), got {args.grid}")
     if args.episodes < 1:
         raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.num_robots is not None and args.num_robots < 1:
-        raise ValueError(f"--num-robots must be >= 1, got {args.num_robots}")
-    if not args.checkpoint.is_file():
-        raise FileNotFoundError(f"checkpoint file not found: {args.checkpoint}")
-    # DesignDistribution names an empty or non-positive range.
-    DesignDistribution(tuple(args.length_range), tuple(args.density_range))
+    check_checkpoint_arguments(args)
 
 
 def run(args: argparse.Namespace) -> dict:

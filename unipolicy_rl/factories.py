@@ -1,48 +1,44 @@
-"""``make_*`` factories that turn the Hydra config into TorchRL parts (TorchRL sota style).
+"""``make_*`` factories that turn the Hydra config into the training run's parts (TorchRL sota style).
 
-train.py, the checkpoint loader and the evaluation CLI all build their envs and networks
-here, so a policy is always rebuilt exactly as it was trained.
+train.py builds everything here: the real collector, the learner (``algo``), and for a
+model-based source the world model, its trainer, the replay buffer and the imagination. The
+policy alone (what a checkpoint hands over) is built in :mod:`unipolicy_rl.policy`, and the env
+in :mod:`unipolicy_rl.envs.config`, so loading a policy needs none of this module.
 """
 
 from __future__ import annotations
 
 import functools
 import signal
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
-from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from omegaconf import DictConfig
+from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import RewardSum, TransformedEnv
-from torchrl.envs.transforms import ObservationNorm
 
 from unipolicy_rl.collectors import (
-    ModelBasedCollector,
+    Imagination,
     RealEpochCollector,
     ShutdownCompleteMultiSyncCollector,
+    TransitionBuffer,
     truncate_last_step,
 )
 from unipolicy_rl.envs import BatchedWalkerEnv
-from unipolicy_rl.networks import make_actor, make_critic
+from unipolicy_rl.envs.config import env_kwargs
+from unipolicy_rl.learners import Learner, TRPOLearner
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
-from unipolicy_rl.world_models import DynamicsModel, StateLayout
+from unipolicy_rl.observation_statistics import ObservationStatistics
+from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm
+from unipolicy_rl.validation import check_settings
+from unipolicy_rl.world_models import Dynamics, StateLayout
+from unipolicy_rl.world_models.trainer import Trainer
 
-NORMALIZED_OBSERVATION = "observation_norm"
-
-
-def env_kwargs(cfg: DictConfig) -> dict:
-    """Keyword arguments of :class:`BatchedWalkerEnv` (all but ``num_robots``) from the config."""
-    robot = cfg.robot
-    return {
-        "design": instantiate(cfg.design),
-        "robot": instantiate(robot.settings, _convert_="all"),
-        "physics": instantiate(robot.physics),
-        "observation": robot.observation,
-        "append_design": robot.append_design,
-        "reward_weights": instantiate(robot.reward),
-        "episode_length": robot.episode_length,
-    }
+# ``source.kind``: real data only, or a world model fitted to them.
+SOURCE_KINDS = ("real", "model")
 
 
 def training_env(num_robots: int, ignore_signals: bool = False, **kwargs) -> TransformedEnv:
@@ -59,19 +55,9 @@ def training_env(num_robots: int, ignore_signals: bool = False, **kwargs) -> Tra
 
 
 def robots_per_worker(cfg: DictConfig) -> int:
-    episodes, workers = cfg.episodes_per_epoch, cfg.workers
-    if not (isinstance(workers, int) and workers >= 1) or episodes % workers:
-        raise ValueError(f"episodes_per_epoch ({episodes}) must be a positive multiple of workers ({workers})")
-    return episodes // workers
-
-
-def make_observation_norm(observation_dim: int, loc: torch.Tensor | None = None,
-                          scale: torch.Tensor | None = None) -> ObservationNorm:
-    """The policy's input normaliser: ``(observation - loc) / scale``, identity by default."""
-    loc = torch.zeros(observation_dim) if loc is None else loc.clone()
-    scale = torch.ones(observation_dim) if scale is None else scale.clone()
-    return ObservationNorm(loc=loc, scale=scale, standard_normal=True, in_keys=["observation"],
-                           out_keys=[NORMALIZED_OBSERVATION])
+    # validation's rules for the two keys (a direct caller may not have run validate_config).
+    check_settings(cfg, "episodes_per_epoch", "workers")
+    return cfg.episodes_per_epoch // cfg.workers
 
 
 def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
@@ -102,76 +88,41 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     return ShutdownCompleteMultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
 
 
-def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleBase) -> TensorDictSequential:
-    """Raw ``observation`` -> normalised -> action: the policy the workers run."""
-    return TensorDictSequential(normalizer, actor)
-
-
-def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
-    algo = cfg.algo
-    actor = make_actor(
-        observation_dim,
-        action_dim,
-        tuple(algo.actor_hidden),
-        algo.activation,
-        algo.init_log_std,
-        observation_key=NORMALIZED_OBSERVATION,
-    )
-    critic = make_critic(observation_dim, tuple(algo.critic_hidden), algo.activation,
-                         observation_key=NORMALIZED_OBSERVATION)
-    return actor, critic
-
-
-def config_from_dict(config: dict) -> DictConfig:
-    return OmegaConf.create(config)
-
-
-SOURCE_KINDS = ("real", "model")
-
-
-def make_training_collector(cfg: DictConfig, policy: TensorDictModuleBase, action_dim: int):
-    """The collector ``source.kind`` asks for: real epochs, or real epochs alternating with
-    imagined batches from the configured world model (``source.kind: model``)."""
-    kind = cfg.source.kind
-    if kind not in SOURCE_KINDS:
-        raise ValueError(f"source.kind must be one of {SOURCE_KINDS}, got {kind!r}")
+def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool) -> RealEpochCollector:
+    """Real epochs of whole episodes, reseeded per epoch; ``full_state`` adds the robots' full
+    state to every step (what a world model fits on)."""
     frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
-    model_based = kind == "model"
-    real = RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=model_based), cfg.seed, cfg.epochs,
+    return RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=full_state), cfg.seed, cfg.epochs,
                               frames_per_batch)
-    if not model_based:
-        return real
-    try:
-        return _model_based_collector(cfg, real, policy, action_dim)
-    except BaseException:
-        real.shutdown()  # its worker processes are running already
-        raise
 
 
-def _model_based_collector(cfg: DictConfig, real: RealEpochCollector, policy: TensorDictModuleBase,
-                           action_dim: int) -> ModelBasedCollector:
-    world_model = cfg.world_model
+@dataclass
+class WorldModelParts:
+    """What a model-based run adds to a real one: the dynamics, the trainer that fits them, the
+    replay buffer of real transitions they fit on, and the imagination that rolls the policy
+    through them."""
+
+    model: Dynamics
+    trainer: Trainer
+    buffer: TransitionBuffer
+    imagination: Imagination
+
+
+def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
+    """``world_model`` (model and trainer) and ``imagination`` (settings and stopping rule) of a model source."""
+    model = make_dynamics_model(cfg, action_dim)
+    settings = instantiate(cfg.imagination)
     reference_env = BatchedWalkerEnv(1, **env_kwargs(cfg), full_state=True)
     reference_env.close()  # only its specs are read
-    return ModelBasedCollector(
-        real,
-        make_dynamics_model(cfg, action_dim),
-        instantiate(world_model.trainer),
-        policy,
-        reference_env,
-        instantiate(cfg.robot.reward),
-        instantiate(world_model.imagination),
-        instantiate(world_model.stopping),
-        cfg.seed,
-        cfg.robot.episode_length,
-    )
+    imagination = Imagination(model, reference_env, instantiate(cfg.robot.reward), settings, cfg.seed,
+                              cfg.robot.episode_length)
+    buffer = TransitionBuffer(settings.buffer_capacity, model.layout.from_full, model.memory_of)
+    return WorldModelParts(model, instantiate(cfg.world_model.trainer), buffer, imagination)
 
 
-def make_dynamics_model(cfg: DictConfig, action_dim: int, device: torch.device | str | None = None) -> DynamicsModel:
+def make_dynamics_model(cfg: DictConfig, action_dim: int, device: torch.device | str | None = None) -> Dynamics:
     """The world model's dynamics (``world_model.model``), sized for the robot and observation,
-    on ``device`` (default: the config's)."""
-    if cfg.get("world_model") is None:
-        raise ValueError("a model-based source needs a world_model config (e.g. world_model=moe)")
+    on ``device`` (default: the config's). ``cfg`` has a ``world_model`` (validate_config's check)."""
     robot = cfg.robot
     layout = StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
                                  cfg.world_model.model_state)
@@ -191,24 +142,38 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         device = torch.device(name)
-    except (RuntimeError, TypeError) as err:
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}") from err
+    except (RuntimeError, TypeError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device={name!r} but torch sees no CUDA GPU here; use device=cpu or device=auto")
-    if device.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
     return device
 
 
-def make_trpo_updater(cfg: DictConfig, actor, critic) -> TRPOUpdater:
-    """TRPO loss (GAE) and its update, from ``algo``."""
+def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> TRPOLearner:
+    """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser."""
     algo = cfg.algo
+    actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
+    normalizer = make_observation_norm(observation_dim)
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
-    return TRPOUpdater(
+    updater = TRPOUpdater(
         loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
         critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
     )
+    return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor),
+                       ObservationStatistics(observation_dim), algo.normalizer_refresh, algo.max_consecutive_skips)
+
+
+# ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
+LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {"trpo": make_trpo_learner}
+
+
+def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:
+    """The learner ``algo.name`` names, sized for the env."""
+    check_settings(cfg, "algo.name")  # validation's rule (a direct caller may not have run validate_config)
+    return LEARNERS[cfg.algo.name](cfg, observation_dim, action_dim)
 
 
 def make_trust_region(cfg: DictConfig) -> TrustRegion:

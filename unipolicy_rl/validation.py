@@ -6,6 +6,12 @@ untrained policy, ``algo.gamma=1.5`` would train with a discount above one, and 
 have their own dataclass (design, robot, physics, reward, trust region, world model parts)
 are built here once so their own checks run now; the plain numbers of the run are checked
 by the rules below. Every error names the config key and the value.
+
+Each check lives in one place: a setting with a dataclass or constructor checks itself there,
+a plain value has its rule in :data:`RULES` (or :data:`JOINT_RULES` when it is checked against
+another). The factories rely on :func:`validate_config` having run (train.py calls it first);
+the few that are library entry points run the rules of the keys they read through
+:func:`check_settings`, the same rules, so a direct call fails as clearly.
 """
 
 from __future__ import annotations
@@ -55,6 +61,19 @@ def _sizes(value) -> str | None:
     return None
 
 
+def _registered(registry: str) -> Callable[[object], str | None]:
+    """A key of ``unipolicy_rl.factories.<registry>``, read when checked (factories imports the
+    whole training stack, and a test may register an entry)."""
+
+    def check(value) -> str | None:
+        from unipolicy_rl import factories
+
+        choices = getattr(factories, registry)
+        return None if value in choices else f"must be one of {sorted(choices)}"
+
+    return check
+
+
 POSITIVE = _integer(1)
 INF = math.inf
 # key -> rule, for the plain values a run reads (dataclass-backed settings check themselves).
@@ -65,6 +84,8 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "workers": POSITIVE,
     "checkpoint_every": POSITIVE,
     "progress_bar": _flag,
+    "source.kind": _registered("SOURCE_KINDS"),
+    "algo.name": _registered("LEARNERS"),
     "algo.actor_hidden": _sizes,
     "algo.critic_hidden": _sizes,
     "algo.activation": _one_of(set(ACTIVATIONS)),
@@ -86,19 +107,57 @@ RULES: dict[str, Callable[[object], str | None]] = {
 }
 
 
+def _equal_shares(cfg: DictConfig) -> str | None:
+    if cfg.episodes_per_epoch % cfg.workers:
+        return (f"episodes_per_epoch ({cfg.episodes_per_epoch}) must be a multiple of workers ({cfg.workers}): "
+                f"each worker steps an equal share of the robots")
+    return None
+
+
+def _model_source_groups(cfg: DictConfig) -> str | None:
+    if cfg.source.kind == "model":
+        for group in ("world_model", "imagination"):
+            if cfg.get(group) is None:
+                return (f"a model-based source needs a {group} config (e.g. world_model=moe, which selects its "
+                        f"imagination)")
+    return None
+
+
+# keys -> rule, for the plain values checked against each other; run after the keys' own rules,
+# it returns the whole message (naming the keys and values) or None.
+JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
+    ("episodes_per_epoch", "workers"): _equal_shares,
+    ("source.kind", "world_model", "imagination"): _model_source_groups,
+}
+
+
+def check_settings(cfg: DictConfig, *keys: str) -> None:
+    """Runs the rules of ``keys`` (:data:`RULES`, then each of :data:`JOINT_RULES` whose keys are
+    all among them): raises ValueError naming the first bad setting (key and value).
+
+    :func:`validate_config` runs every rule; a library entry point that reads a few plain
+    settings runs theirs here, so it fails as clearly without validate_config having run.
+    """
+    for key in keys:
+        if key in RULES:
+            value = _get(cfg, key)
+            problem = RULES[key](value)
+            if problem:
+                raise ValueError(f"{key} {problem}, got {value!r}")
+    for joint, rule in JOINT_RULES.items():
+        if set(joint) <= set(keys):
+            problem = rule(cfg)
+            if problem:
+                raise ValueError(problem)
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Raises ValueError naming the first bad setting of ``cfg`` (key and value)."""
-    for key, rule in RULES.items():
-        value = _get(cfg, key)
-        problem = rule(value)
-        if problem:
-            raise ValueError(f"{key} {problem}, got {value!r}")
-    if cfg.episodes_per_epoch % cfg.workers:
-        raise ValueError(f"episodes_per_epoch ({cfg.episodes_per_epoch}) must be a multiple of workers "
-                         f"({cfg.workers}): each worker steps an equal share of the robots")
+    check_settings(cfg, *RULES, *(key for joint in JOINT_RULES for key in joint))
     # Imported here: factories imports the whole training stack.
+    from unipolicy_rl.collectors.imagination import check_stopping_rule
     from unipolicy_rl.envs import DesignDistribution
-    from unipolicy_rl.factories import SOURCE_KINDS, make_dynamics_model, make_trust_region, resolve_device
+    from unipolicy_rl.factories import make_dynamics_model, make_trust_region, resolve_device
 
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
@@ -108,15 +167,13 @@ def validate_config(cfg: DictConfig) -> None:
     _built("robot.reward", lambda: instantiate(cfg.robot.reward))
     _built("algo", lambda: make_trust_region(cfg))
     _built("device", lambda: resolve_device(cfg.device))
-    if cfg.source.kind not in SOURCE_KINDS:
-        raise ValueError(f"source.kind must be one of {SOURCE_KINDS}, got {cfg.source.kind!r}")
-    if cfg.source.kind == "model":
-        if cfg.get("world_model") is None:
-            raise ValueError("a model-based source needs a world_model config (e.g. world_model=moe)")
-        for part in ("trainer", "imagination", "stopping"):
-            _built(f"world_model.{part}", lambda part=part: instantiate(cfg.world_model[part]))
+    if cfg.source.kind == "model":  # its world_model and imagination groups are there (JOINT_RULES)
+        _built("world_model.trainer", lambda: instantiate(cfg.world_model.trainer))
+        imagination = _built("imagination", lambda: instantiate(cfg.imagination))
         # On the meta device: the constructor's checks run, no weights are allocated.
-        _built("world_model.model", lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
+        model = _built("world_model.model",
+                       lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
+        check_stopping_rule(imagination.stopping, model)
 
 
 def _get(cfg: DictConfig, key: str):
@@ -126,10 +183,10 @@ def _get(cfg: DictConfig, key: str):
     return node
 
 
-def _built(key: str, build: Callable[[], object]) -> None:
-    """Builds a setting so its own checks run, prefixing any complaint with its key."""
+def _built(key: str, build: Callable[[], object]):
+    """Builds a setting so its own checks run, prefixing any complaint with its key; returns it."""
     try:
-        build()
+        return build()
     except ValueError as err:
         raise ValueError(f"{key}: {err}") from None
     except Exception as err:  # Hydra wraps a constructor's error in its own

@@ -1,12 +1,13 @@
-"""Collectors that yield labelled training batches: real epochs, or real epochs alternating
-with imagined batches from a world model."""
+"""Where training data come from: real epochs of whole episodes, the replay buffer of real
+transitions a world model fits on, and imagined batches from a fitted world model."""
 
-from unipolicy_rl.collectors.model_based import (
+from unipolicy_rl.collectors.imagination import (
     HorizonSchedule,
+    Imagination,
     ImaginationSettings,
-    ModelBasedCollector,
+    ImaginedEpoch,
     StoppingRule,
-    transitions,
+    imagined_metrics,
 )
 from unipolicy_rl.collectors.real import (
     DATA_SOURCE,
@@ -14,22 +15,25 @@ from unipolicy_rl.collectors.real import (
     REAL,
     RealEpochCollector,
     ShutdownCompleteMultiSyncCollector,
-    epoch_seed,
     is_imagined,
     truncate_last_step,
 )
+from unipolicy_rl.collectors.replay import COLLECTED_IN, TransitionBuffer, transitions
 
 __all__ = [
+    "COLLECTED_IN",
     "DATA_SOURCE",
     "IMAGINED",
     "REAL",
     "HorizonSchedule",
+    "Imagination",
     "ImaginationSettings",
-    "ModelBasedCollector",
+    "ImaginedEpoch",
     "RealEpochCollector",
     "ShutdownCompleteMultiSyncCollector",
     "StoppingRule",
-    "epoch_seed",
+    "TransitionBuffer",
+    "imagined_metrics",
     "is_imagined",
     "transitions",
     "truncate_last_step",

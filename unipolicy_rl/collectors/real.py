@@ -11,22 +11,16 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.weight_update import MultiProcessWeightSyncScheme
 
+from unipolicy_rl.seeding import epoch_seed
+
 # Every batch a collector of this package yields says where its data came from.
 DATA_SOURCE = "data_source"
 REAL, IMAGINED = "real", "imagined"
-
-
-def epoch_seed(seed: int, epoch: int, phase: int | None = None) -> int:
-    """The seed a run restarts its randomness from at ``epoch`` (real collection), or at a
-    later ``phase`` of that epoch (a model-based run's model fit and imagination)."""
-    entropy = [seed, epoch] if phase is None else [seed, epoch, phase]
-    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 
 def label(batch: TensorDictBase, source: str) -> TensorDictBase:
@@ -47,8 +41,6 @@ class RealEpochCollector:
         epochs: the epoch to stop after (absolute: a resumed run starts at :attr:`epoch`).
         frames_per_batch: real env steps in one batch.
     """
-
-    trains_policy_on_real = True
 
     def __init__(self, collector: Collector | MultiSyncCollector, seed: int, epochs: int,
                  frames_per_batch: int) -> None:
@@ -84,6 +76,13 @@ class RealEpochCollector:
 
     def shutdown(self) -> None:
         self.collector.shutdown()
+
+    def __enter__(self) -> RealEpochCollector:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        # Also on failure: else the interpreter waits for the worker processes forever on exit.
+        self.shutdown()
 
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "real_env_steps": self.real_env_steps}

@@ -2,9 +2,9 @@
 
 TorchRL 0.14's shared-memory ``ParallelEnv`` has the parent spin-poll a byte per worker
 until the step is done. That saves a syscall when there are spare cores, but on a 2-core
-machine running 2 workers the spinning parent takes a core from them: measured by
-``benchmarks/env_throughput.py``, the parent used about 0.9 of a core and two workers ran
-at about 0.9x one process. This class changes only that wait. Each worker still sets its
+machine running 2 workers the spinning parent takes a core from them, and two workers ran
+slower than one process (``benchmarks/env_throughput.py``; docs/results.md, "Environment
+throughput"). This class changes only that wait. Each worker still sets its
 done byte, and now also posts a semaphore; the parent blocks on the semaphores, so the
 kernel wakes it the moment the last worker is done and it uses no CPU before. Everything
 else (buffers, pipes, partial steps, resets) is TorchRL's.

@@ -1,4 +1,9 @@
-"""Evaluation: a policy on a grid of designs (CSV, summary) and the pictures that go with it."""
+"""Evaluation: a policy on a grid of designs (CSV, summary), its real episodes at any designs
+(:func:`policy_trajectories`) and the pictures that go with them.
+
+How close a surrogate's trajectories are to real ones is measured by
+:mod:`unipolicy_rl.evaluation.accuracy`, imported from there.
+"""
 
 from unipolicy_rl.evaluation.grid import (
     CSV_COLUMNS,
@@ -18,6 +23,7 @@ from unipolicy_rl.evaluation.grid import (
     write_csv,
 )
 from unipolicy_rl.evaluation.plots import plot_heatmaps, plot_training_curve
+from unipolicy_rl.evaluation.trajectories import policy_trajectories
 
 __all__ = [
     "CSV_COLUMNS",
@@ -32,6 +38,7 @@ __all__ = [
     "grid_score",
     "plot_heatmaps",
     "plot_training_curve",
+    "policy_trajectories",
     "read_csv",
     "rollout_designs",
     "summarise",

@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from unipolicy_rl.evaluation.grid import DesignResult
+from unipolicy_rl.training.metrics_file import DISPLACEMENT, EPOCH, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
 
 # (attribute of DesignResult, file stem, colour-bar label)
 HEATMAPS = (
@@ -85,21 +86,21 @@ def plot_training_curve(csv_path_or_rows: str | Path | Iterable[Mapping], out_pa
     model-based run's imagined rows) are skipped, so only real returns are drawn.
     """
     rows = _read_rows(csv_path_or_rows)
-    x_column, x_label = ("real_env_steps", "real env steps") if any(
-        _number(row.get("real_env_steps")) is not None for row in rows) else ("epoch", "epoch")
-    panels = [(("train/episode_reward",), "episode reward")]
-    if any(_number(row.get("train/forward_displacement")) is not None for row in rows):
-        panels.append((("train/forward_displacement",), "forward displacement (m)"))
-    if any(_number(row.get("eval/grid_mean_displacement")) is not None for row in rows):
-        panels.append((("eval/grid_mean_displacement", "eval/grid_min_displacement"), "design grid (m)"))
+    x_column, x_label = (REAL_STEPS, "real env steps") if any(
+        _number(row.get(REAL_STEPS)) is not None for row in rows) else (EPOCH, "epoch")
+    panels = [((REWARD,), "episode reward")]
+    if any(_number(row.get(DISPLACEMENT)) is not None for row in rows):
+        panels.append(((DISPLACEMENT,), "forward displacement (m)"))
+    if any(_number(row.get(GRID_MEAN)) is not None for row in rows):
+        panels.append(((GRID_MEAN, GRID_MIN), "design grid (m)"))
     figure = Figure(figsize=(7, 3 * len(panels)))
     axes = figure.subplots(len(panels), 1, sharex=True, squeeze=False)
     for axis, (columns, label) in zip(axes[:, 0], panels, strict=True):
         for column in columns:
             points = [(_number(row.get(x_column)), _number(row.get(column))) for row in rows]
             points = [(x, value) for x, value in points if x is not None and value is not None]
-            if not points and column == "train/episode_reward":
-                raise ValueError(f"no rows with both {x_column!r} and 'train/episode_reward': is this a metrics CSV?")
+            if not points and column == REWARD:
+                raise ValueError(f"no rows with both {x_column!r} and {REWARD!r}: is this a metrics CSV?")
             name = column.split("/")[-1].replace("grid_", "").replace("_displacement", "")
             axis.plot([x for x, _ in points], [value for _, value in points], marker="." if len(points) < 50 else "",
                       label=name if len(columns) > 1 else None)

@@ -254,8 +254,8 @@ def kl_hessian_vector_product_fn(
     The textbook Pearlmutter product: build ``grad kl`` with ``create_graph=True`` once, then
     back-propagate ``grad kl . v`` through it. With ``kl`` the mean KL against a detached copy
     of the current policy, ``H`` is the Fisher matrix and this equals
-    :func:`fisher_vector_product_fn`, at about 1.7x its cost (it also differentiates terms
-    that are multiplied by the zero KL gradient). Kept as the reference the tests compare to.
+    :func:`fisher_vector_product_fn`, at a higher cost (it also differentiates terms that are
+    multiplied by the zero KL gradient). Kept as the reference the tests compare to.
     """
     kl_grad = flat_grad(kl, params, create_graph=True)
 

@@ -19,15 +19,7 @@ from unipolicy_rl.report import figures, generalisation, markdown
 from unipolicy_rl.report.grids import GridValues, best_achievable, cell, relative_performance, seed_mean
 from unipolicy_rl.report.groups import check_same_robot, group_runs
 from unipolicy_rl.report.markdown import Section
-from unipolicy_rl.report.metrics import (
-    DISPLACEMENT,
-    GRID_MEAN,
-    GRID_MIN,
-    IMAGINED_PREFIX,
-    REWARD,
-    series,
-    steps_are_derived,
-)
+from unipolicy_rl.report.metrics import series, steps_are_derived
 from unipolicy_rl.report.runs import (
     SWEEP_FILE,
     ReportError,
@@ -38,6 +30,7 @@ from unipolicy_rl.report.runs import (
     run_names,
 )
 from unipolicy_rl.report.summary import TABLE_HEADER, summarise_source, surrogate_rows, table_row, write_summary_csv
+from unipolicy_rl.training.metrics_file import DISPLACEMENT, GRID_MEAN, GRID_MIN, IMAGINED_PREFIX, REWARD
 
 DEFAULT_FOLDER = "report"
 DEFAULT_WIDE_GRID = 5  # designs per axis of the generalisation grid (25 episodes per policy)

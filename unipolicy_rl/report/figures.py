@@ -20,7 +20,8 @@ from matplotlib.patches import Rectangle
 from unipolicy_rl.evaluation import WALKING_DISPLACEMENT
 from unipolicy_rl.report.bands import seed_band
 from unipolicy_rl.report.grids import GridValues
-from unipolicy_rl.report.metrics import DISPLACEMENT, GRID_MEAN, GRID_MIN, REWARD, Series
+from unipolicy_rl.report.metrics import Series
+from unipolicy_rl.training.metrics_file import DISPLACEMENT, GRID_MEAN, GRID_MIN, REWARD
 
 DPI = 120
 # (columns drawn in one panel, line styles, y label); the grid panel only when a run logged it.

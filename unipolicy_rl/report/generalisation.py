@@ -14,7 +14,6 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from unipolicy_rl.checkpoint import load_policy
 from unipolicy_rl.envs import Design, DesignDistribution
 from unipolicy_rl.evaluation import DesignResult, evaluate_on_designs, read_csv, write_csv
 from unipolicy_rl.report.runs import ReportError, Run
@@ -55,6 +54,9 @@ def evaluate_wide(run: Run, designs: Sequence[Design], cache_dir: Path, seed: in
                 return read_csv(csv_path)
         except (OSError, ValueError, KeyError, AttributeError):
             pass  # a damaged entry is evaluated again
+    # Imported here: loading a policy needs the training stack, which reading a sweep does not.
+    from unipolicy_rl.checkpoint import load_policy
+
     loaded = load_policy(run.checkpoint)
     results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), designs, episodes_per_design=1, seed=seed)
     write_csv(results, csv_path)

@@ -1,4 +1,4 @@
-"""The metrics.csv columns the report reads, and the two axes it compares sources on.
+"""The metrics.csv figures the report reads, and the two axes it compares sources on.
 
 Model-free and model-based training are compared per *real* env step and per second of wall
 time, so both axes exist for every run: logged by newer runs (``real_env_steps``,
@@ -16,20 +16,44 @@ import numpy as np
 
 from unipolicy_rl.evaluation import walks_the_grid
 from unipolicy_rl.report.runs import Run
+from unipolicy_rl.training.metrics_file import (
+    DISPLACEMENT,
+    ELAPSED,
+    EPOCH,
+    EPOCH_TIMES,
+    GRID_MEAN,
+    GRID_MIN,
+    GRID_WALKING,
+    IMAGINED_PREFIX,
+    REAL_STEPS,
+    REWARD,
+)
+from unipolicy_rl.training.metrics_file import MODEL_PREFIX as SURROGATE_PREFIX
 
-REWARD = "train/episode_reward"  # real episodes' mean return
-DISPLACEMENT = "train/forward_displacement"  # real episodes' mean forward displacement (m)
-REAL_STEPS = "real_env_steps"  # cumulative real simulator steps used for training
-ELAPSED = "time/elapsed"  # wall seconds since the run started
-EPOCH_TIMES = ("time/collect", "time/update")  # per-epoch seconds, what older runs logged
-# Periodic real-env grid evaluation; NaN on rows without one.
-GRID_MEAN = "eval/grid_mean_displacement"
-GRID_MIN = "eval/grid_min_displacement"
-GRID_WALKING = "eval/walking_designs"
-IMAGINED_PREFIX = "imagined/"
-# Surrogate accuracy figures a model-based run logs (fit error and the like); the summary
-# shows each one's last value.
-SURROGATE_PREFIX = "model/"
+# The column names are defined with the file's writer (unipolicy_rl.training.metrics_file) and
+# re-exported here under the names this module has always offered.
+__all__ = [
+    "DISPLACEMENT",
+    "ELAPSED",
+    "EPOCH",
+    "EPOCH_TIMES",
+    "GRID_MEAN",
+    "GRID_MIN",
+    "GRID_WALKING",
+    "IMAGINED_PREFIX",
+    "REAL_STEPS",
+    "REWARD",
+    "SURROGATE_PREFIX",
+    "Series",
+    "column",
+    "elapsed_seconds",
+    "first_walking",
+    "median_to_walk",
+    "real_env_steps",
+    "series",
+    "steps_are_derived",
+    "surrogate_figures",
+]
 
 
 @dataclass(frozen=True)
@@ -54,7 +78,7 @@ def real_env_steps(run: Run) -> np.ndarray:
     if REAL_STEPS in run.columns:
         return _carry_forward(column(run, REAL_STEPS))
     per_epoch = run.config["episodes_per_epoch"] * run.config["robot"]["episode_length"]
-    return column(run, "epoch") * per_epoch
+    return column(run, EPOCH) * per_epoch
 
 
 def elapsed_seconds(run: Run) -> np.ndarray:

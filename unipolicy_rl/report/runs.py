@@ -13,6 +13,7 @@ import io
 import itertools
 import math
 import os
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -22,14 +23,14 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from unipolicy_rl.checkpoint import load_checkpoint
 from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.evaluation import DesignResult, read_csv
+from unipolicy_rl.training.metrics_file import EPOCH
+from unipolicy_rl.training.metrics_file import FILE_NAME as METRICS
 
 CONFIG = Path(".hydra") / "config.yaml"
 HYDRA_CONFIG = Path(".hydra") / "hydra.yaml"
 OVERRIDES = Path(".hydra") / "overrides.yaml"
-METRICS = "metrics.csv"
 CHECKPOINT = "checkpoint.pt"
 DESIGNS = Path("evaluation") / "designs.csv"
 SWEEP_FILE = "multirun.yaml"  # Hydra writes it at the root of every multirun
@@ -60,7 +61,9 @@ class Run:
 
     @property
     def source(self) -> str | None:
-        return _get(self.config, "source", "name")
+        """What ran: the run's name (design, world model, algorithm: ``se-moe-trpo``), or, for runs
+        from before runs were named so, the data source (``moe``)."""
+        return _get(self.config, "run_name") or _get(self.config, "source", "name")
 
     @property
     def epochs(self) -> int | None:
@@ -68,7 +71,7 @@ class Run:
 
     @property
     def last_epoch(self) -> int:
-        epochs = [row["epoch"] for row in self.rows if math.isfinite(row.get("epoch", math.nan))]
+        epochs = [row[EPOCH] for row in self.rows if math.isfinite(row.get(EPOCH, math.nan))]
         return int(max(epochs)) if epochs else 0
 
     @property
@@ -187,23 +190,29 @@ def _resolved(config) -> dict:
     return walk(OmegaConf.to_container(config, resolve=False), "")
 
 
+def _with_choices(text: str, choices: dict) -> str:
+    """The config's text with Hydra's ``${hydra:runtime.choices.GROUP}`` replaced by the run's choice
+    (what ``run_name`` is made of), which outside Hydra nothing else could resolve."""
+    return re.sub(r"\$\{hydra:runtime\.choices\.([\w/]+)\}", lambda match: str(choices.get(match.group(1))), text)
+
+
 def _read_config(run: Run) -> None:
     path = run.path / CONFIG
     if not path.is_file():
         run.problems.append(f"no {CONFIG}: cannot tell its source, seed or robot, so it is left out")
         return
     try:
-        run.config = _resolved(OmegaConf.load(path))
+        run.choices = dict(OmegaConf.load(run.path / HYDRA_CONFIG).hydra.runtime.choices)
+    except Exception:
+        run.choices = {}
+    try:
+        run.config = _resolved(OmegaConf.create(_with_choices(path.read_text(), run.choices)))
         if not isinstance(run.config, dict) or run.source is None:
             raise ValueError("no source.name in it")
     except Exception as error:  # a YAML error of any kind: one line, not a traceback
         run.config = None
         run.problems.append(f"unreadable {path}: {_reason(error)}; left out")
         return
-    try:
-        run.choices = dict(OmegaConf.load(run.path / HYDRA_CONFIG).hydra.runtime.choices)
-    except Exception:
-        run.choices = {}
     try:
         run.overrides = [str(item) for item in OmegaConf.load(run.path / OVERRIDES)]
     except Exception:
@@ -223,8 +232,8 @@ def _read_metrics(run: Run) -> None:
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         run.problems.append(f"unreadable {path}: {_reason(error)}")
         return
-    if "epoch" not in columns:
-        run.problems.append(f"unreadable {path}: no 'epoch' column, so not a metrics CSV")
+    if EPOCH not in columns:
+        run.problems.append(f"unreadable {path}: no {EPOCH!r} column, so not a metrics CSV")
         return
     # Every row ends in a newline: a last row without one is a write the run did not finish.
     cut = bool(raw) and not text.endswith("\n")
@@ -254,8 +263,8 @@ def _drop_redone_epochs(rows: list[dict[str, float]]) -> list[dict[str, float]]:
     rows are the ones its checkpoint continued from, so earlier rows from that epoch on go."""
     kept: list[dict[str, float]] = []
     for row in rows:
-        if kept and row["epoch"] < kept[-1]["epoch"]:
-            kept = [old for old in kept if old["epoch"] < row["epoch"]]
+        if kept and row[EPOCH] < kept[-1][EPOCH]:
+            kept = [old for old in kept if old[EPOCH] < row[EPOCH]]
         kept.append(row)
     return kept
 
@@ -266,6 +275,10 @@ def _diagnose(run: Run) -> None:
         return
     epochs, last = run.epochs, run.last_epoch
     if run.checkpoint is not None:
+        # Imported here: only an unfinished run's checkpoint is read, and the checkpoint module
+        # brings the whole training stack with it.
+        from unipolicy_rl.checkpoint import load_checkpoint
+
         try:
             run.checkpoint_epoch = int(load_checkpoint(run.checkpoint)["epoch"])
         except Exception as error:

@@ -104,8 +104,8 @@ def to_urdf(description: RobotDescription, max_torque: float = 1.0, visuals: boo
     """The robot as URDF text; joint efforts carry ``max_torque`` (N m).
 
     ``visuals=False`` leaves out the visual geometry: PyBullet builds renderer shapes for
-    it even in DIRECT mode, which made loading a robot six times slower (23 ms vs 4 ms),
-    a cost paid at every episode reset when the design changes.
+    it even in DIRECT mode, which made loading a robot several times slower, a cost paid at
+    every episode reset when the design changes.
     """
     parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(description.name)}>\n']
     parts += [_link(link, visuals) for link in description.links]

@@ -25,7 +25,8 @@ HINGES = (
 )
 # The four hip roll joints swing the bent legs fore and aft. Of the choices we searched
 # with open-loop sinusoids (four hips, four knees, front hips + rear knees, front hips +
-# front knees), four hips walked furthest, about 1.8 m per 100-action episode.
+# front knees), four hips walked furthest (the gait's distance today: docs/results.md,
+# "Environment throughput").
 DEFAULT_ACTUATED = ("front_left_hip", "front_right_hip", "rear_left_hip", "rear_right_hip")
 
 

@@ -1,7 +1,7 @@
 """Neural-network ensembles that predict the robot's next state (the MOE surrogates).
 
-Two models share one interface (:class:`DynamicsModel`), so the trainer, the world model and
-the imagined env take either:
+Both are :class:`~unipolicy_rl.world_models.dynamics.NeuralDynamics`, so the trainer, the world
+model and the imagined env take either:
 
 * :class:`GaussianEnsemble` (``world_model=moe``, the default): what model-based RL learned
   since the thesis (PETS, MBPO, mbrl-lib). Every member sees the design (l, rho) as an input,
@@ -25,8 +25,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from unipolicy_rl.world_models.dynamics import NeuralDynamics
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.networks import EnsembleMLP, Standardizer
+from unipolicy_rl.world_models.networks import EnsembleMLP
 
 
 def run_members(network: EnsembleMLP, x: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
@@ -50,78 +51,7 @@ def run_members(network: EnsembleMLP, x: torch.Tensor, member: torch.Tensor) -> 
     return result
 
 
-class DynamicsModel(nn.Module):
-    """A batch of members predicting ``next_state`` from ``(state, action, design)``.
-
-    The trainer works in standardised space: ``inputs``/``targets`` build the raw regression
-    pairs, :meth:`fit_normalizers` fits the standardisers, :meth:`training_loss` and
-    :meth:`validation_error` take standardised ``[members, batch, ...]`` tensors and return
-    one value per member and sample (``[members, batch]``; the trainer averages them over
-    each member's own samples). :meth:`predict` maps a real-valued state to the next one.
-    """
-
-    layout: StateLayout
-    members: int
-
-    def __init__(self, layout: StateLayout, input_size: int, target_size: int) -> None:
-        super().__init__()
-        self.layout = layout
-        self.input_norm = Standardizer(input_size)
-        self.target_norm = Standardizer(target_size)
-
-    # -- data -------------------------------------------------------------------------
-    def inputs(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def targets(self, state: torch.Tensor, next_state: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def fit_normalizers(self, inputs: torch.Tensor, targets: torch.Tensor) -> None:
-        self.input_norm.fit(inputs)
-        self.target_norm.fit(targets)
-
-    @property
-    def device(self) -> torch.device:
-        """Where the model fits and predicts (``cfg.device``); callers bring their tensors here."""
-        return self.input_norm.mean.device
-
-    def memory_of(self, batch) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The memory columns (``layout.memory_size``) of the states before and after each step of
-        a real batch ``[robots, steps]`` whose rows are whole episodes; None for a model without."""
-        return None
-
-    def data_members(self, design: torch.Tensor) -> torch.Tensor | None:
-        """The member each training sample belongs to, or None when every member sees all data."""
-        return None
-
-    # -- training ---------------------------------------------------------------------
-    def training_loss(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def validation_error(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def regularization(self) -> torch.Tensor:
-        return torch.zeros(())
-
-    def member_parameters(self) -> list[nn.Parameter]:
-        """Parameters whose first dimension is the member (kept per member by early stopping)."""
-        return [p for p in self.parameters() if p.dim() >= 2 and p.shape[0] == self.members]
-
-    def set_elites(self, validation_error: torch.Tensor) -> None:
-        """Called by the trainer with each member's validation error after a fit."""
-
-    # -- prediction -------------------------------------------------------------------
-    def draw_members(self, design: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The member that predicts each row (``[N]`` long) for trajectories of these designs."""
-        raise NotImplementedError
-
-    def predict(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor, member: torch.Tensor,
-                deterministic: bool = False) -> torch.Tensor:
-        raise NotImplementedError
-
-
-class GaussianEnsemble(DynamicsModel):
+class GaussianEnsemble(NeuralDynamics):
     """Probabilistic ensemble of design-conditioned state-change predictors (PETS/MBPO style).
 
     Args:
@@ -181,6 +111,10 @@ class GaussianEnsemble(DynamicsModel):
     def set_elites(self, validation_error):
         self.elites.copy_(torch.argsort(validation_error)[: self.elites.numel()])
 
+    @property
+    def elite_members(self):
+        return [int(e) for e in self.elites]
+
     def draw_members(self, design, generator=None):
         pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
         return self.elites[pick]
@@ -193,7 +127,7 @@ class GaussianEnsemble(DynamicsModel):
         return state + self.target_norm.inverse(change).reshape(state.shape)
 
 
-class CellEnsemble(DynamicsModel):
+class CellEnsemble(NeuralDynamics):
     """The thesis' ensemble: per (l, rho) cell, a position network and a velocity network.
 
     Args:
@@ -235,6 +169,12 @@ class CellEnsemble(DynamicsModel):
 
     def data_members(self, design):
         return self.cell(design)
+
+    @property
+    def voting_members(self):
+        # A member models its own cell of designs only: comparing every cell's return from the
+        # same start states would mix models of different robots, not alternatives of one.
+        return None
 
     def _errors(self, x, y):
         positions = (self.position_network(x) - y[..., self.positions]) ** 2

@@ -1,6 +1,6 @@
 """A surrogate as a TorchRL world model, and the env that rolls a policy through it.
 
-:func:`make_world_model` composes a :class:`DynamicsModel` into TorchRL's
+:func:`make_world_model` composes a :class:`Dynamics` into TorchRL's
 :class:`~torchrl.modules.WorldModel`: the latent is the robot's state itself (``state``),
 the dynamics head predicts the next state, the reward head is the real env's
 :func:`~unipolicy_rl.envs.walking_reward` of it (no learned reward), the done head ends a
@@ -27,7 +27,7 @@ from torchrl.modules import WorldModel
 
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import healthy_rows
-from unipolicy_rl.world_models.ensemble import DynamicsModel
+from unipolicy_rl.world_models.dynamics import Dynamics
 
 # A start state: the robot's state and design (and, once assigned, the member that predicts it).
 StartSampler = Callable[[int], TensorDictBase]
@@ -43,7 +43,7 @@ class PredictNextState(nn.Module):
     trajectory's.
     """
 
-    def __init__(self, model: DynamicsModel, member_per_step: bool = False, deterministic: bool = False) -> None:
+    def __init__(self, model: Dynamics, member_per_step: bool = False, deterministic: bool = False) -> None:
         super().__init__()
         self.model = model
         self.member_per_step = member_per_step
@@ -61,7 +61,7 @@ class PredictNextState(nn.Module):
         return next_state, design, member, ~healthy
 
 
-def draw_members(model: DynamicsModel, design: torch.Tensor) -> torch.Tensor:
+def draw_members(model: Dynamics, design: torch.Tensor) -> torch.Tensor:
     """``model.draw_members`` for designs on any device, answered on theirs."""
     return model.draw_members(design.to(model.device)).to(design.device)
 
@@ -88,7 +88,7 @@ class DoneHead(nn.Module):
 class ObservationDecoder(nn.Module):
     """The policy's observation of the predicted state (:meth:`StateLayout.observation`)."""
 
-    def __init__(self, model: DynamicsModel) -> None:
+    def __init__(self, model: Dynamics) -> None:
         super().__init__()
         self.layout = model.layout
 
@@ -96,7 +96,7 @@ class ObservationDecoder(nn.Module):
         return self.layout.observation(state, design)
 
 
-def make_world_model(model: DynamicsModel, reward_weights: RewardWeights, member_per_step: bool = False,
+def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_step: bool = False,
                      deterministic: bool = False) -> WorldModel:
     """Composes ``model`` into TorchRL's ``WorldModel`` (latent = ``state``)."""
     nxt = "next"
@@ -127,7 +127,9 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
     while a collector or ``check_env_specs`` resets without one and TorchRL's rollout resets
     only the trajectories that ended (``_reset`` mask). Here a reset draws start states from
     ``start_states`` (real states from the replay buffer) for every trajectory it resets that
-    brings none, and assigns each its member.
+    brings none, and assigns each its member: drawn from the model's elites, or the row's own
+    member of ``members`` where given (a comparison across members must keep each row's member
+    when TorchRL restarts a row that faulted, since its reset brings only the ``_reset`` mask).
 
     Args:
         world_model: from :func:`make_world_model`.
@@ -135,10 +137,11 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
             reward and done specs this env copies; it is not stepped.
         start_states: ``n -> TensorDict(state, design)`` of real start states.
         batch_size: number of trajectories.
+        members: ``[batch_size]`` the member of every row, for good (None: drawn at every reset).
     """
 
     def __init__(self, world_model: WorldModel, reference_env: EnvBase, start_states: StartSampler,
-                 batch_size: int) -> None:
+                 batch_size: int, members: torch.Tensor | None = None) -> None:
         shape = torch.Size([batch_size])
         super().__init__(world_model.step_module, device="cpu", batch_size=shape, allow_done_after_reset=True)
         model = world_model.dynamics.module.model
@@ -159,6 +162,9 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
         self.full_world_model = world_model
         self.model = model
         self.start_states = start_states
+        if members is not None and members.shape != shape:
+            raise ValueError(f"members must be one per trajectory, shape {tuple(shape)}, got {tuple(members.shape)}")
+        self.members = None if members is None else members.reshape(batch_size, 1).long()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self.world_model(tensordict.copy()).get("next")
@@ -183,7 +189,9 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
                     start["member"][mask] = draw_members(self.model, fresh["design"]).unsqueeze(-1)
         state, design = start.get("state").float(), start.get("design").float()
         member = start.get("member", None)
-        if member is None:
+        if self.members is not None:
+            member = self.members.clone()
+        elif member is None:
             member = draw_members(self.model, design).unsqueeze(-1)
         out = TensorDict(
             {
@@ -202,20 +210,27 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
 
 def member_returns(world_model: WorldModel, reference_env: EnvBase, policy: TensorDictModule,
                    starts: TensorDictBase, horizon: int) -> torch.Tensor:
-    """Mean return of ``policy`` over ``horizon`` imagined steps from ``starts``, one figure per member.
+    """Mean return of ``policy`` over ``horizon`` imagined steps from ``starts``, one figure per voting member.
 
-    Every start is rolled out under every member (ME-TRPO's check of a policy on each
-    model), all members in one batched rollout: ``[members]``.
+    Every start is rolled out under every member of ``model.voting_members`` (ME-TRPO's check
+    of a policy on each model), all of them in one batched rollout: ``[voters]``. A trajectory
+    that faults restarts from its own start under its own member, so each figure is one
+    member's alone.
     """
     model = world_model.dynamics.module.model
+    voters = model.voting_members
+    if voters is None:
+        raise ValueError(f"{type(model).__name__}'s members model different designs, not alternatives of one "
+                         f"robot: ME-TRPO's comparison across members does not apply (use stopping.kind=fixed)")
+    voters = voters.cpu()
     n = starts.batch_size[0]
-    members = torch.arange(model.members).repeat_interleave(n)
-    batch = starts.expand(model.members, n).reshape(-1).clone()
+    members = voters.repeat_interleave(n)
+    batch = starts.expand(len(voters), n).reshape(-1).clone()
     batch.set("member", members.unsqueeze(-1))
-    # A trajectory that faults restarts from one of the same starts (the reset may ask for any number).
+    # Row i holds start i % n: a restart asks for all rows and keeps those it resets.
     env = ImaginedWalkerEnv(world_model, reference_env, lambda k: starts[torch.arange(k) % n],
-                            batch_size=batch.batch_size[0])
+                            batch_size=batch.batch_size[0], members=members)
     rollout = env.rollout(horizon, policy, tensordict=env.reset(batch), auto_reset=False,
                           break_when_any_done=False)
     returns = rollout.get(("next", "reward")).sum(dim=(1, 2))
-    return returns.reshape(model.members, n).mean(1)
+    return returns.reshape(len(voters), n).mean(1)

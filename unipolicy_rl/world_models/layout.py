@@ -13,7 +13,7 @@ angles and rates. Two views are derived here and nowhere else:
 
 A model whose prediction needs more than the robot's state (the thesis' ME-PCE needs the step
 within the episode and the last actions) carries it as ``memory_size`` columns after the
-robot's state; the model fills them (``DynamicsModel.memory_of``), the env only passes them on.
+robot's state; the model fills them (``Dynamics.memory_of``), the env only passes them on.
 """
 
 from __future__ import annotations

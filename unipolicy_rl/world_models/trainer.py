@@ -1,9 +1,12 @@
-"""Fitting a :class:`~unipolicy_rl.world_models.ensemble.DynamicsModel` on real transitions.
+"""Fitting world models on real transitions: one call, one report, one train/validation split.
 
-Kept apart from the model, as mbrl-lib's ``ModelTrainer`` is: the model only predicts and
-scores; the trainer splits the data, standardises it, runs the epochs, keeps each member's
-best weights on validation data (early stopping with patience) and tells the model its
-validation errors so it can pick elites.
+:class:`ModelTrainer` fits a :class:`~unipolicy_rl.world_models.dynamics.NeuralDynamics`, kept
+apart from the model as mbrl-lib's ``ModelTrainer`` is: the model only predicts and scores; the
+trainer splits the data, standardises it, runs the epochs, keeps each member's best weights on
+validation data (early stopping with patience) and tells the model its validation errors so it
+can pick elites. :class:`ClosedFormTrainer` fits a model that owns its closed-form fit (the
+polynomial-chaos models): it splits the data the same way and calls the model's ``fit``.
+Both return a :class:`FitReport`.
 """
 
 from __future__ import annotations
@@ -11,14 +14,16 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol
 
 import torch
 from tensordict import TensorDictBase
 
-from unipolicy_rl.world_models.ensemble import DynamicsModel
+from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 
-# Keys of a transition batch (one real step each), as the model-based collector stores them.
+# Keys of a transition batch (one real step each), as the replay buffer stores them.
 TRANSITION_KEYS = ("state", "action", "design", "next_state")
 
 
@@ -26,8 +31,8 @@ TRANSITION_KEYS = ("state", "action", "design", "next_state")
 class FitReport:
     """What one fit did: epochs run, last training loss, each member's best validation error
     (standardised MSE), the elites, the members that had no data (a thesis cell not visited),
-    and how many least-squares problems a closed-form fit had to solve by rank-revealing
-    ``lstsq`` because their normal equations could not be factored."""
+    the wall time, and figures only some models have (``extras``, logged under their own names,
+    e.g. a closed-form fit's ``solve_fallbacks``)."""
 
     epochs: int
     train_loss: float
@@ -35,7 +40,7 @@ class FitReport:
     elites: list[int]
     members_without_data: int
     seconds: float
-    solve_fallbacks: int = 0
+    extras: Mapping[str, float] = field(default_factory=dict)
 
     def as_metrics(self, prefix: str = "model/") -> dict[str, float]:
         trained = self.validation_error[torch.isfinite(self.validation_error)]
@@ -47,8 +52,31 @@ class FitReport:
             math.nan,
             f"{prefix}members_without_data": float(self.members_without_data),
             f"{prefix}fit_seconds": self.seconds,
-            f"{prefix}solve_fallbacks": float(self.solve_fallbacks),
+            **{f"{prefix}{name}": float(value) for name, value in self.extras.items()},
         }
+
+
+class Trainer(Protocol):
+    """Fits a model in place on transitions (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+
+    def fit(self, model: Dynamics, transitions: TensorDictBase, generator: torch.Generator | None = None) -> FitReport:
+        ...
+
+
+def split_transitions(n: int, validation_fraction: float,
+                      generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(train, validation)`` row indices of ``n`` transitions: a random ``validation_fraction``
+    (at least one row) held out. Every trainer splits here, so their held-out errors compare."""
+    if n < 2:
+        raise ValueError(f"need at least 2 transitions to fit and validate a model, got {n}")
+    order = torch.randperm(n, generator=generator)
+    n_validation = max(1, round(validation_fraction * n))
+    return order[n_validation:], order[:n_validation]
+
+
+def check_validation_fraction(fraction: float) -> None:
+    if not 0 < fraction < 1:
+        raise ValueError(f"validation_fraction must lie in (0, 1), got {fraction!r}")
 
 
 @dataclass(frozen=True)
@@ -72,8 +100,8 @@ class ModelTrainer:
 
     learning_rate: float = 1e-3
     batch_size: int = 256
-    max_epochs: int = 50
-    patience: int = 5
+    max_epochs: int = 30
+    patience: int = 3
     min_improvement: float = 0.01
     validation_fraction: float = 0.2
     weight_decay: float = 0.0
@@ -87,31 +115,27 @@ class ModelTrainer:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if not 0 < self.validation_fraction < 1:
-            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
+        check_validation_fraction(self.validation_fraction)
         if not self.weight_decay >= 0:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
         check_num_threads(self.num_threads)
 
-    def fit(self, model: DynamicsModel, transitions: TensorDictBase,
+    def fit(self, model: NeuralDynamics, transitions: TensorDictBase,
             generator: torch.Generator | None = None) -> FitReport:
         """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
         with torch_threads(self.num_threads):
             return self._fit(model, transitions, generator)
 
-    def _fit(self, model: DynamicsModel, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
+    def _fit(self, model: NeuralDynamics, transitions: TensorDictBase,
+             generator: torch.Generator | None) -> FitReport:
         started = time.perf_counter()
         transitions = transitions.reshape(-1)
-        n = transitions.batch_size[0]
-        if n < 2:
-            raise ValueError(f"need at least 2 transitions to fit and validate a model, got {n}")
+        # Index sets are built on the CPU, then moved.
+        train, validation = split_transitions(transitions.batch_size[0], self.validation_fraction, generator)
         device = model.device
         state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
         inputs = model.inputs(state, action, design)
         targets = model.targets(state, next_state)
-        order = torch.randperm(n, generator=generator)  # index sets are built on the CPU, then moved
-        n_validation = max(1, round(self.validation_fraction * n))
-        validation, train = order[:n_validation], order[n_validation:]
         model.fit_normalizers(inputs[train], targets[train])
         with torch.no_grad():
             x, y = model.input_norm(inputs), model.target_norm(targets)
@@ -157,9 +181,47 @@ class ModelTrainer:
             for kept, parameter in zip(best_weights, member_parameters, strict=True):
                 parameter.copy_(kept)
         model.set_elites(best_error)
-        elites = getattr(model, "elites", torch.arange(model.members))
-        return FitReport(epochs_run, train_loss, best_error.cpu(), [int(e) for e in elites],
-                         int((~has_data).sum()), time.perf_counter() - started)
+        return FitReport(epochs_run, train_loss, best_error.cpu(), model.elite_members, int((~has_data).sum()),
+                         time.perf_counter() - started)
+
+
+class ClosedFormModel(Protocol):
+    """A :class:`~unipolicy_rl.world_models.dynamics.Dynamics` that owns its closed-form fit."""
+
+    def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor,
+            oversampling: float, generator: torch.Generator | None = None) -> FitReport:
+        ...
+
+
+@dataclass(frozen=True)
+class ClosedFormTrainer:
+    """Fits a model that owns its closed-form fit (the polynomial-chaos models): the same call and
+    report as :class:`ModelTrainer`, the same split, then the model's own ``fit``.
+
+    Args:
+        validation_fraction: share of the transitions held out.
+        oversampling: training samples per fitted term, at least (least-squares PCE wants 2-3 for
+            random inputs; a policy's correlated data want more).
+        num_threads: torch threads during a fit (then restored), or None to leave them.
+    """
+
+    validation_fraction: float = 0.2
+    oversampling: float = 2.0
+    num_threads: int | None = None
+
+    def __post_init__(self) -> None:
+        check_validation_fraction(self.validation_fraction)
+        if not self.oversampling >= 1:
+            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
+        check_num_threads(self.num_threads)
+
+    def fit(self, model: ClosedFormModel, transitions: TensorDictBase,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
+        transitions = transitions.reshape(-1)
+        train, validation = split_transitions(transitions.batch_size[0], self.validation_fraction, generator)
+        with torch_threads(self.num_threads):
+            return model.fit(transitions, train, validation, self.oversampling, generator)
 
 
 @contextlib.contextmanager

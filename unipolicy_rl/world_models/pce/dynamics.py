@@ -1,8 +1,8 @@
-"""The default PCE world model (``world_model=pce``): a one-step transition PCE and its trainer.
+"""The default PCE world model (``world_model=pce``): a one-step transition PCE that owns its fit.
 
 The thesis' PCE (one expansion per time step in the design and a window of actions) degrades
-over the episode and cannot follow a gait whose period depends on the design (DESIGN.md §5;
-its own conclusion asks for the current state as an input). Here, as PC-NARX does (Mai,
+over the episode and cannot follow a gait whose period depends on the design (docs/results.md,
+"Polynomial chaos"; the thesis' own conclusion asks for the current state as an input). Here, as PC-NARX does (Mai,
 Spiridonakos, Chatzi and Sudret 2016), the dynamics carry the state and the expansion only
 has to describe one control step: the *change* of the state as a Legendre PCE in the same
 translation-invariant features as :class:`~unipolicy_rl.world_models.GaussianEnsemble`
@@ -14,21 +14,20 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 
-from unipolicy_rl.world_models.ensemble import DynamicsModel
+from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
+from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
-from unipolicy_rl.world_models.pce.regression import solve_normal_equations
-from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport, check_num_threads, torch_threads
+from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
 INTERACTIONS = ("all", "controls")
 
 
-class PCEDynamics(DynamicsModel):
+class PCEDynamics(nn.Module):
     """State change as a sparse Legendre PCE in (features, actions, design); ``members`` bootstrap fits.
 
     Inputs are mapped to [-1, 1] by ranges taken from the training data at each fit, widened
@@ -53,6 +52,18 @@ class PCEDynamics(DynamicsModel):
     whole buffer costs a few matrix products, where greedy sparse solvers (orthogonal
     matching pursuit, LARS) pick terms per output, one solve per selected term, and must be
     redone at every refit.
+
+    Fit (:meth:`fit`, called by :class:`~unipolicy_rl.world_models.ClosedFormTrainer` with its
+    train/validation split): the input ranges are taken from the training part, the normal
+    equations of every member are accumulated over row chunks and solved by Cholesky (float64),
+    and each member's validation error is the mean over outputs of its MSE divided by the
+    output's variance (standardised MSE, as the ensemble's trainer reports); an epoch count of 1
+    is reported. The data decide how much of the basis is fitted: the first ``min(terms, n_train
+    / oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
+    the rest kept at zero, so the first epochs (1,000 real transitions) fit a lower-order model
+    and no fit is underdetermined. Terms of an input that did not vary in the training data (a
+    locked joint's angle and rate) are left out too: on the data they are constant columns,
+    copies of the intercept, and would make the normal equations singular.
 
     Members are bootstrap fits (Poisson(1) sample weights, member 0 on the plain sample), so
     imagined trajectories can draw one and ME-TRPO's stopping rule can compare them;
@@ -87,7 +98,8 @@ class PCEDynamics(DynamicsModel):
         if not (isinstance(chunk_size, int) and chunk_size >= 1):
             raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
         input_size = layout.feature_size + action_dim + 2
-        super().__init__(layout, input_size, layout.size)
+        super().__init__()
+        self.layout = layout
         indices = multi_indices(input_size, order, truncation, q, max_interaction)
         if interactions == "controls":
             controls = torch.zeros(input_size, dtype=torch.bool, device="cpu")
@@ -107,10 +119,23 @@ class PCEDynamics(DynamicsModel):
         self.register_buffer("residual_std", torch.zeros(members, layout.size))
         self.register_buffer("elites", torch.arange(members))
         self.register_buffer("fitted_terms", torch.zeros((), dtype=torch.long))  # how many terms the data fitted
+        self._register_load_state_dict_pre_hook(drop_unused_standardizers)
 
     @property
     def terms(self) -> int:
         return self.basis.terms
+
+    # -- the Dynamics interface -----------------------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        return self.coefficients.device
+
+    @property
+    def voting_members(self) -> torch.Tensor:
+        return torch.arange(self.members, device=self.device)
+
+    def memory_of(self, batch) -> None:
+        return None
 
     def inputs(self, state, action, design):
         return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design.to(state.dtype)], dim=-1)
@@ -148,99 +173,43 @@ class PCEDynamics(DynamicsModel):
         next_state = state + change.reshape(state.shape)
         return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
 
-
-@dataclass(frozen=True)
-class ClosedFormTrainer:
-    """What the closed-form PCE trainers share: the held-out share, the samples per fitted term
-    and the threads of a fit; ``fit`` has :class:`~unipolicy_rl.world_models.ModelTrainer`'s call
-    and report, and subclasses implement ``_fit``.
-
-    Args:
-        validation_fraction: share of the transitions held out.
-        oversampling: training samples per fitted term, at least.
-        num_threads: torch threads during a fit (then restored), or None to leave them.
-    """
-
-    validation_fraction: float = 0.2
-    oversampling: float = 2.0
-    num_threads: int | None = None
-
-    def __post_init__(self) -> None:
-        if not 0 < self.validation_fraction < 1:
-            raise ValueError(f"validation_fraction must lie in (0, 1), got {self.validation_fraction!r}")
-        if not self.oversampling >= 1:
-            raise ValueError(f"oversampling must be >= 1 (samples per term), got {self.oversampling!r}")
-        check_num_threads(self.num_threads)
-
-    def fit(self, model: DynamicsModel, transitions: TensorDictBase,
-            generator: torch.Generator | None = None) -> FitReport:
-        """Fits ``model`` in place on ``transitions`` (keys :data:`TRANSITION_KEYS`, batch ``[N]``)."""
-        with torch_threads(self.num_threads):
-            return self._fit(model, transitions, generator)
-
-    def _fit(self, model, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
-        raise NotImplementedError
-
-
-@dataclass(frozen=True)
-class PCETrainer(ClosedFormTrainer):
-    """Closed-form fit of a :class:`PCEDynamics`: same call and report as :class:`ModelTrainer`.
-
-    The transitions are split (``validation_fraction`` held out), the input ranges are taken
-    from the training part, the normal equations of every member are accumulated over row
-    chunks and solved by Cholesky (float64), and each member's validation error is the mean
-    over outputs of its MSE divided by the output's variance (standardised MSE, as the
-    ensemble's trainer reports). An epoch count of 1 is reported.
-
-    The data decide how much of the basis is fitted: the first ``min(terms, n_train /
-    oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
-    the rest kept at zero, so the first epochs (1,000 real transitions) fit a lower-order model
-    and no fit is underdetermined; least-squares PCE wants 2-3 samples per term. Terms of an
-    input that did not vary in the training data (a locked joint's angle and rate) are left out
-    too: on the data they are constant columns, copies of the intercept, and would make the
-    normal equations singular.
-
-    Settings: :class:`ClosedFormTrainer`'s.
-    """
-
     @torch.no_grad()
-    def _fit(self, model: PCEDynamics, transitions: TensorDictBase, generator: torch.Generator | None) -> FitReport:
+    def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor, oversampling: float,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Fits in place on ``transitions`` (keys :data:`~unipolicy_rl.world_models.trainer.TRANSITION_KEYS`):
+        rows ``train`` to fit, rows ``validation`` to score (see the class docstring, "Fit")."""
         started = time.perf_counter()
-        transitions = transitions.reshape(-1)
-        n = transitions.batch_size[0]
-        device = model.device
+        device = self.device
+        train, validation = train.to(device), validation.to(device)
         state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
-        inputs, targets = model.inputs(state, action, design), model.targets(state, next_state)
-        order = torch.randperm(n, generator=generator)
-        n_validation = max(1, round(self.validation_fraction * n))
-        validation, train = order[:n_validation].to(device), order[n_validation:].to(device)
+        inputs, targets = self.inputs(state, action, design), self.targets(state, next_state)
         constant = inputs[train].amax(0) <= inputs[train].amin(0)
-        candidates = (~(model.basis.indices[:, constant.cpu()] > 0).any(1)).nonzero().squeeze(1).to(device)
-        terms = min(len(candidates), int(len(train) / self.oversampling))
+        candidates = (~(self.basis.indices[:, constant.cpu()] > 0).any(1)).nonzero().squeeze(1).to(device)
+        terms = min(len(candidates), int(len(train) / oversampling))
         if terms < 1:
-            raise ValueError(f"need at least {self.oversampling} training transitions per PCE term, got {len(train)}")
+            raise ValueError(f"need at least {oversampling} training transitions per PCE term, got {len(train)}")
         active = candidates[:terms]  # in order of total degree: the constant, the linear terms, ...
-        model.set_ranges(inputs[train])
+        self.set_ranges(inputs[train])
         low, high = targets[train].amin(0), targets[train].amax(0)
-        model.change_low.copy_(low - model.margin * (high - low))
-        model.change_high.copy_(high + model.margin * (high - low))
-        velocities = torch.tensor(model.layout.velocity_columns, dtype=torch.long, device=device)
+        self.change_low.copy_(low - self.margin * (high - low))
+        self.change_high.copy_(high + self.margin * (high - low))
+        velocities = torch.tensor(self.layout.velocity_columns, dtype=torch.long, device=device)
         low, high = next_state[train][:, velocities].amin(0), next_state[train][:, velocities].amax(0)
-        model.state_low[velocities] = low - model.margin * (high - low)
-        model.state_high[velocities] = high + model.margin * (high - low)
+        self.state_low[velocities] = low - self.margin * (high - low)
+        self.state_high[velocities] = high + self.margin * (high - low)
         # Poisson(1) bootstrap weights; member 0 fits the plain sample.
-        weights = torch.poisson(torch.ones(model.members, len(train)), generator=generator).to(device)
+        weights = torch.poisson(torch.ones(self.members, len(train)), generator=generator).to(device)
         weights[0] = 1.0
         outputs = targets.shape[-1]
         # Accumulated in float64: near the data's limit (2 samples per term, a bootstrap member
         # sees about 63% of them) float32 rounding in the sums outweighs the ridge and the Gram
         # matrix loses its positive definiteness.
-        gram = torch.zeros(model.members, terms, terms, device=device, dtype=torch.float64)
-        moment = torch.zeros(model.members, terms, outputs, device=device, dtype=torch.float64)
-        square = torch.zeros(model.members, outputs, device=device, dtype=torch.float64)
-        for rows in torch.arange(len(train), device=device).split(model.chunk_size):
+        gram = torch.zeros(self.members, terms, terms, device=device, dtype=torch.float64)
+        moment = torch.zeros(self.members, terms, outputs, device=device, dtype=torch.float64)
+        square = torch.zeros(self.members, outputs, device=device, dtype=torch.float64)
+        for rows in torch.arange(len(train), device=device).split(self.chunk_size):
             # Terms first ([terms, rows]), as the basis builds it: selecting terms copies whole rows.
-            xt = model.design_matrix(inputs[train[rows]]).transpose(-1, -2)[active].double()
+            xt = self.design_matrix(inputs[train[rows]]).transpose(-1, -2)[active].double()
             y = targets[train[rows]].double()
             w = weights[:, rows].double()
             weighted = xt * w.unsqueeze(1)  # [members, terms, rows]
@@ -249,24 +218,31 @@ class PCETrainer(ClosedFormTrainer):
             square += w @ y.pow(2)
         samples = (weights > 0).sum(1)
         # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
-        ridge = model.ridge * weights.sum(1).reshape(-1, 1, 1)
+        ridge = self.ridge * weights.sum(1).reshape(-1, 1, 1)
         gram = gram + ridge * torch.eye(terms, device=device)
         coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
         if diagnostics.fallbacks:
             raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
                                      f"raise world_model.model.ridge or lower the order")
         coefficients = coefficients.float()
-        model.coefficients.zero_()
-        model.coefficients[:, active] = coefficients
-        model.fitted_terms.fill_(terms)
-        model.residual_std.copy_(diagnostics.residual_rms)
+        self.coefficients.zero_()
+        self.coefficients[:, active] = coefficients
+        self.fitted_terms.fill_(terms)
+        self.residual_std.copy_(diagnostics.residual_rms)
         # ---- validation: standardised MSE per member
-        x = model.design_matrix(inputs[validation])[:, active]
-        predicted = (x @ coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (model.members, outputs))
+        x = self.design_matrix(inputs[validation])[:, active]
+        predicted = (x @ coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, outputs))
         truth = targets[validation].unsqueeze(1)
         scale = targets[train].var(0, correction=0).clamp_min(1e-12)
         error = ((predicted - truth).pow(2) / scale).mean(dim=(0, 2))
         error = torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf)).cpu()
-        model.set_elites(error)
         train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
-        return FitReport(1, train_error, error, [int(e) for e in model.elites], 0, time.perf_counter() - started)
+        return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
+                         extras={"solve_fallbacks": 0})
+
+
+def drop_unused_standardizers(state_dict, prefix, *args) -> None:
+    """Checkpoints written before the model stopped carrying the neural models' (unused)
+    input/target standardisers still load."""
+    for key in [k for k in state_dict if k.startswith((f"{prefix}input_norm.", f"{prefix}target_norm."))]:
+        del state_dict[key]

@@ -1,6 +1,6 @@
 """The thesis' ME-PCE as a world model (``world_model=pce_thesis``): its dynamics and its trainer.
 
-:class:`~unipolicy_rl.world_models.pce.ThesisMEPCE` predicts the state at step ``t`` from the
+:class:`~unipolicy_rl.polynomial_chaos.ThesisMEPCE` predicts the state at step ``t`` from the
 design and the last ``T`` actions, not from the current state. An imagined env steps a state,
 so the state a trajectory carries here is the robot's followed by a memory: the step within
 the episode and the last ``T - 1`` actions. With the action being taken that is exactly the
@@ -11,7 +11,7 @@ buffered state.
 
 The thesis fitted its expansion to uniformly random actions on 4,900 problems at once; a run
 collects far fewer episodes than its 7 x 7 elements at order 3 need (680 per element). The
-trainer lets the data decide, as :class:`~unipolicy_rl.world_models.PCETrainer` does: each
+fit lets the data decide, as :meth:`~unipolicy_rl.world_models.PCEDynamics.fit` does: each
 element and step fits the first ``count / oversampling`` terms in order of total degree (the
 constant, then the linear terms, ...), and an element no episode visited predicts the mean
 state of its step over all elements. docs/results.md ("Polynomial chaos") measures what that
@@ -23,20 +23,20 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 
-from unipolicy_rl.world_models.ensemble import DynamicsModel
+from unipolicy_rl.polynomial_chaos.basis import Basis
+from unipolicy_rl.polynomial_chaos.thesis import ThesisMEPCE, pack_by_element
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.pce.basis import Basis
-from unipolicy_rl.world_models.pce.dynamics import ClosedFormTrainer
-from unipolicy_rl.world_models.pce.thesis import ThesisMEPCE, pack_by_element
+from unipolicy_rl.world_models.pce.dynamics import drop_unused_standardizers
 from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
 
-class ThesisPCEDynamics(DynamicsModel):
+class ThesisPCEDynamics(nn.Module):
     """Per-step, per-element Legendre PCE of the robot's state in (l, rho, the last ``window`` actions).
 
     One deterministic model (``members == 1``): the elements are chosen by the design, not
@@ -67,7 +67,8 @@ class ThesisPCEDynamics(DynamicsModel):
         pce = ThesisMEPCE(length_range, density_range, action_dim, order, truncation, q, divisions, window,
                           reduction="none", ridge=ridge)
         layout = replace(layout, memory_size=1 + action_dim * (window - 1))
-        super().__init__(layout, pce.basis.dimension, layout.robot_size)
+        super().__init__()
+        self.layout = layout
         self.pce = pce
         self.action_dim, self.window, self.horizon = action_dim, window, horizon
         self.register_buffer("coefficients", torch.zeros(horizon, pce.elements, pce.terms, layout.robot_size),
@@ -75,6 +76,7 @@ class ThesisPCEDynamics(DynamicsModel):
         self.register_buffer("elites", torch.zeros(1, dtype=torch.long))
         self.fitted_terms = pce.terms  # the leading terms any element fitted (the rest are zero)
         self._bases: dict[int, Basis] = {pce.terms: pce.basis}
+        self._register_load_state_dict_pre_hook(drop_unused_standardizers)
 
     @property
     def terms(self) -> int:
@@ -115,9 +117,16 @@ class ThesisPCEDynamics(DynamicsModel):
         element, local = self.pce.element(design)
         return element, torch.cat([local.float(), window.flatten(-2).float()], dim=-1)
 
-    # -- the DynamicsModel interface ------------------------------------------------------
-    def inputs(self, state, action, design):
-        return self._inputs(design, self._step_and_window(state, action)[1])[1]
+    # -- the Dynamics interface -----------------------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        return self.coefficients.device
+
+    @property
+    def voting_members(self) -> torch.Tensor:
+        # One model (its elements are chosen by the design, not drawn): ME-TRPO's rule then asks
+        # whether the policy's return under it still improves.
+        return torch.zeros(1, dtype=torch.long, device=self.device)
 
     def targets(self, state, next_state):
         return next_state[..., :self.layout.robot_size]
@@ -141,58 +150,47 @@ class ThesisPCEDynamics(DynamicsModel):
         memory = torch.cat([(step + 1).unsqueeze(-1).to(state.dtype), window[..., 1:, :].flatten(-2)], dim=-1)
         return torch.cat([robot, memory], dim=-1).reshape(shape)
 
-
-@dataclass(frozen=True)
-class ThesisPCETrainer(ClosedFormTrainer):
-    """Least-squares fit of a :class:`ThesisPCEDynamics` on the buffer: same call and report as
-    :class:`~unipolicy_rl.world_models.ModelTrainer`.
-
-    Every transition is one sample of the expansion of its step (the state after the action,
-    from the design and the action window); per step, all elements are solved at once
-    (:meth:`ThesisMEPCE.solve_step`). Each element fits the first ``count / oversampling``
-    terms of the basis (in order of total degree) that its training samples at that step can
-    determine. Held-out transitions give the validation error: the standardised MSE of the
-    predicted state, which for this model is its open-loop error, since it never reads the
-    state it predicts from.
-
-    Settings: :class:`~unipolicy_rl.world_models.pce.dynamics.ClosedFormTrainer`'s.
-    """
-
     @torch.no_grad()
-    def _fit(self, model: ThesisPCEDynamics, transitions: TensorDictBase,
-             generator: torch.Generator | None) -> FitReport:
+    def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor, oversampling: float,
+            generator: torch.Generator | None = None) -> FitReport:
+        """Least squares on ``transitions``' rows ``train``, scored on rows ``validation``.
+
+        Every transition is one sample of the expansion of its step (the state after the action,
+        from the design and the action window); per step, all elements are solved at once
+        (:meth:`ThesisMEPCE.solve_step`). Each element fits the first ``count / oversampling``
+        terms of the basis (in order of total degree) that its training samples at that step can
+        determine. Held-out transitions give the validation error: the standardised MSE of the
+        predicted state, which for this model is its open-loop error, since it never reads the
+        state it predicts from.
+        """
         started = time.perf_counter()
-        # Fitted on the CPU (small per-step solves, index bookkeeping); the coefficients then go to the model's device.
-        transitions = transitions.reshape(-1)
-        n = transitions.batch_size[0]
+        # Fitted on the CPU (small per-step solves, index bookkeeping); the coefficients then go to the device.
         state, action, design, next_state = (transitions.get(key).float().cpu() for key in TRANSITION_KEYS)
-        step, window = model._step_and_window(state, action)
-        element, x = model._inputs(design, window)
-        y = model.targets(state, next_state)
-        order = torch.randperm(n, generator=generator)
-        n_validation = max(1, round(self.validation_fraction * n))
-        validation, train = order[:n_validation], order[n_validation:]
-        pce, elements = model.pce, model.pce.elements
-        coefficients = torch.zeros_like(model.coefficients, device="cpu")
+        step, window = self._step_and_window(state, action)
+        element, x = self._inputs(design, window)
+        y = self.targets(state, next_state)
+        train, validation = train.cpu(), validation.cpu()
+        pce, elements = self.pce, self.pce.elements
+        coefficients = torch.zeros_like(self.coefficients, device="cpu")
         visited = torch.zeros(elements, dtype=torch.bool)
         widest, fallbacks = 1, 0
-        for s in range(model.horizon):
+        for s in range(self.horizon):
             rows = train[step[train] == s]
             if len(rows) == 0:
                 continue
             packed, weight, counts = pack_by_element(element[rows], elements)
             visited |= counts > 0
             # Per element, the terms its samples can determine; the batch solves the widest of them.
-            fitted = torch.clamp((counts / self.oversampling).floor().long(), 0, pce.terms)
+            fitted = torch.clamp((counts / oversampling).floor().long(), 0, pce.terms)
             width = max(1, int(fitted.max()))
             inactive = torch.arange(width).unsqueeze(0) >= fitted.unsqueeze(1)
             # Terms of an input an element's samples never varied (an action held at its bound)
-            # repeat the constant: they are left out, as PCETrainer leaves out locked joints.
+            # repeat the constant: they are left out, as PCEDynamics.fit leaves out locked joints.
             inputs = x[rows][packed]
             valid = weight.unsqueeze(-1) > 0
             spread = (torch.where(valid, inputs, -math.inf).amax(1) - torch.where(valid, inputs, math.inf).amin(1))
             constant = spread <= 1e-9  # [elements, inputs]
-            basis = model.leading_basis(width)
+            basis = self.leading_basis(width)
             inactive |= (constant.unsqueeze(1) & (basis.indices > 0).unsqueeze(0)).any(-1)
             widest = max(widest, width)
             # In float64: the problems are small, and a policy's data are far from the uniform law the basis is
@@ -205,16 +203,17 @@ class ThesisPCETrainer(ClosedFormTrainer):
             # An element with too few samples for even the constant predicts the step's mean state
             # (the constant term of the orthonormal basis is 1).
             coefficients[s, fitted == 0, 0] = y[rows].mean(0)
-        model.coefficients.copy_(coefficients)
-        model.fitted_terms = widest
+        self.coefficients.copy_(coefficients)
+        self.fitted_terms = widest
         # ---- validation: standardised MSE of the held-out states
         scale = y[train].var(0, correction=0).clamp_min(1e-12)
 
         def error_on(rows: torch.Tensor) -> torch.Tensor:
-            predicted = model.predict(*(t[rows].to(model.device) for t in (state, action, design)), None).cpu()
-            return ((predicted[:, :model.layout.robot_size] - y[rows]).pow(2) / scale).mean()
+            predicted = self.predict(*(t[rows].to(self.device) for t in (state, action, design)), None).cpu()
+            return ((predicted[:, :self.layout.robot_size] - y[rows]).pow(2) / scale).mean()
 
         error, train_error = error_on(validation), float(error_on(train))
         error = error if torch.isfinite(error) else torch.tensor(math.inf)
         return FitReport(1, train_error, error.reshape(1), [0], int((~visited).sum()), time.perf_counter() - started,
-                         fallbacks)
+                         extras={"solve_fallbacks": fallbacks})
+

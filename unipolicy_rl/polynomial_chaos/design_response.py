@@ -3,11 +3,12 @@
 With deterministic actions the physics is deterministic too, so under a trained policy every
 observed coordinate at every step is a function of the design alone: two inputs, uniform over
 the design box. A Legendre PCE of that function, one per (step, coordinate), is fitted by least
-squares to a few dozen real episodes at Gauss-Legendre nodes of the box, and then answers
+squares to a few dozen real episodes at Gauss-Legendre nodes of the box (rolled by
+:func:`~unipolicy_rl.evaluation.policy_trajectories`), and then answers
 without more physics: the mean and variance of every coordinate over time (from the
 coefficients), its distribution (the expansion at any number of designs) and the episode of
 any one design. This is the thesis' uncertainty quantification for a policy, where its
-expansion over random actions (:class:`~unipolicy_rl.world_models.pce.ThesisMEPCE`) answers
+expansion over random actions (:class:`~unipolicy_rl.polynomial_chaos.ThesisMEPCE`) answers
 it for an action distribution.
 
 Whether two inputs and a modest order describe the policy's response is a property of the
@@ -23,9 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from unipolicy_rl.envs.design import Design
-from unipolicy_rl.world_models.pce.basis import UniformInputs
-from unipolicy_rl.world_models.pce.expansion import PolynomialChaos
+from unipolicy_rl.polynomial_chaos.basis import UniformInputs
+from unipolicy_rl.polynomial_chaos.expansion import PolynomialChaos
 
 
 def gauss_legendre_designs(points: int, length_range: Sequence[float], density_range: Sequence[float]) -> torch.Tensor:
@@ -52,24 +52,6 @@ def _uniform(inputs: UniformInputs, n: int, generator: torch.Generator | None) -
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"n must be a positive integer, got {n!r}")
     return inputs.from_unit(torch.rand(n, inputs.dimension, generator=generator, dtype=torch.float64) * 2 - 1)
-
-
-def policy_trajectories(policy, env_kwargs: dict, designs: torch.Tensor, num_robots: int | None = None,
-                        seed: int = 0, progress: str | None = None) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """One real episode of ``policy``'s deterministic actions per design.
-
-    Returns the observation after every action, ``[designs, steps, features]``, which
-    episodes had a physics fault (``[designs]``; their observations freeze at the fault), and
-    the env's control period (s per step)."""
-    from unipolicy_rl.evaluation.grid import design_rollouts  # the evaluation package imports world models
-
-    pairs = [Design(float(length), float(density)) for length, density in designs.tolist()]
-    observations, faults, periods = [], [], []
-    for batch, rollout, period in design_rollouts(policy, env_kwargs, pairs, num_robots, seed, True, progress):
-        observations.append(rollout["next", "observation"][: len(batch)].double())
-        faults.append(rollout["next", "physics_fault"][: len(batch)].reshape(len(batch), -1).any(-1))
-        periods.append(period)
-    return torch.cat(observations), torch.cat(faults), periods[0]
 
 
 @dataclass

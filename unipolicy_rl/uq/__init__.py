@@ -5,7 +5,7 @@
 
 Runs the policy's deterministic actions in the real env at the Gauss-Legendre nodes of the
 design box, fits every observed coordinate at every step as a Legendre PCE in (l, rho)
-(:class:`~unipolicy_rl.world_models.pce.DesignResponse`), and checks it against Monte Carlo:
+(:class:`~unipolicy_rl.polynomial_chaos.DesignResponse`), and checks it against Monte Carlo:
 episodes at uniformly random designs, compared step by step with the expansion at the same
 designs (mean and standard deviation, mean relative error with the thesis' floors, Jensen-
 Shannon divergence). Prints the table for the base's forward position and velocity (or any
@@ -24,18 +24,13 @@ from pathlib import Path
 
 import torch
 
-from unipolicy_rl.command_line import run_checked, run_command_line
-from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution
+from unipolicy_rl.command_line import check_checkpoint_arguments, run_checked, run_command_line
+from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT
-from unipolicy_rl.world_models.accuracy import THESIS_FLOOR, jensen_shannon, plot_bands, relative_error
-from unipolicy_rl.world_models.pce import (
-    DesignResponse,
-    gauss_legendre_designs,
-    policy_trajectories,
-    total_degree_terms,
-    uniform_designs,
-)
+from unipolicy_rl.evaluation import policy_trajectories
+from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, jensen_shannon, plot_bands, relative_error
+from unipolicy_rl.polynomial_chaos import DesignResponse, gauss_legendre_designs, total_degree_terms, uniform_designs
 
 # The base leads every observation layout: position xyz, then velocity xyz.
 BASE_NAMES = ("base x (m)", "base y (m)", "base z (m)", "base x_dot (m/s)", "base y_dot (m/s)", "base z_dot (m/s)")
@@ -79,11 +74,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--coordinates must be observation column indices >= 0, got {args.coordinates}")
     if args.check < 2:
         raise ValueError(f"--check must be >= 2 (Monte Carlo episodes), got {args.check}")
-    if args.num_robots is not None and args.num_robots < 1:
-        raise ValueError(f"--num-robots must be >= 1, got {args.num_robots}")
-    if not args.checkpoint.is_file():
-        raise FileNotFoundError(f"checkpoint file not found: {args.checkpoint}")
-    DesignDistribution(tuple(args.length_range), tuple(args.density_range))  # names an empty range
+    check_checkpoint_arguments(args)
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -185,7 +176,3 @@ def main(argv: Sequence[str] | None = None) -> dict:
 def cli(argv: Sequence[str] | None = None) -> None:
     """Command-line entry: a bad argument or a missing file is a one-line usage error, not a traceback."""
     run_command_line(make_parser, check_arguments, run, argv)
-
-
-if __name__ == "__main__":
-    cli()

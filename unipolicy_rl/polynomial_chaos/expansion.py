@@ -6,10 +6,19 @@ from collections.abc import Sequence
 
 import torch
 
-from unipolicy_rl.world_models.pce.basis import Basis, UniformInputs
-from unipolicy_rl.world_models.pce.regression import FitDiagnostics, least_squares
+from unipolicy_rl.polynomial_chaos.basis import Basis, UniformInputs
+from unipolicy_rl.polynomial_chaos.regression import FitDiagnostics, least_squares
 
 REDUCTIONS = ("projection", "variance")
+
+
+def constant_inputs(x: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """``[..., d]`` (bool): which inputs take one value over every sample of a problem, for samples
+    ``x [..., n, d]`` and ``weights [..., n]`` (a sample of weight 0 is not part of the fit)."""
+    used = torch.ones_like(x[..., :1], dtype=torch.bool) if weights is None else (weights > 0).unsqueeze(-1)
+    low = torch.where(used, x, torch.full_like(x, float("inf"))).amin(-2)
+    high = torch.where(used, x, torch.full_like(x, float("-inf"))).amax(-2)
+    return low == high
 
 
 def mean(coefficients: torch.Tensor) -> torch.Tensor:
@@ -45,14 +54,26 @@ class PolynomialChaos:
             high: Sequence[float] | torch.Tensor, order: int, truncation: str = "total_degree", q: float = 1.0,
             max_interaction: int | None = None, orthonormal: bool = True, weights: torch.Tensor | None = None,
             ridge: float = 0.0) -> PolynomialChaos:
-        """Least squares on samples ``x [..., n, d]`` (inside the ranges) and ``y [..., n, outputs]``."""
+        """Least squares on samples ``x [..., n, d]`` (inside the ranges) and ``y [..., n, outputs]``.
+
+        An input that never varies over a problem's samples (non-zero weights) says nothing about
+        how the output depends on it, and its terms' columns are multiples of lower terms' (the
+        basis is downward closed, as every truncation here builds it), which makes the normal
+        equations singular. Its terms are dropped there: their coefficients are zero, so the
+        moments attribute nothing to it, the fit of the rest reaches the least-squares optimum,
+        and ``diagnostics.constant_inputs`` names the input."""
         inputs = UniformInputs(low, high)
         basis = Basis.create(inputs.dimension, order, truncation, q, max_interaction, orthonormal)
         n = x.shape[-2]
         if n < basis.terms:  # refused before the design matrix is built
             raise ValueError(f"underdetermined fit: {basis.terms} terms but only {n} samples")
         design = basis(inputs.to_unit(x))
-        coefficients, diagnostics = least_squares(design, y.to(design.dtype), weights, ridge)
+        constant = constant_inputs(x, weights)
+        involves = (basis.indices > 0).to(constant.device)
+        dropped = (constant.unsqueeze(-2) & involves).any(-1)  # [..., terms]: a term of a constant input
+        coefficients, diagnostics = least_squares(design, y.to(design.dtype), weights, ridge,
+                                                  dropped=dropped if dropped.any() else None)
+        diagnostics.constant_inputs = tuple(int(j) for j in constant.reshape(-1, inputs.dimension).any(0).nonzero())
         return cls(inputs, basis, coefficients, diagnostics)
 
     def __call__(self, x: torch.Tensor, clamp: bool = False) -> torch.Tensor:

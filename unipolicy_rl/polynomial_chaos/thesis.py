@@ -12,7 +12,7 @@ Fitting the window's variables directly by least squares is the L2 projection of
 the windowed basis, which is what the thesis' reduction step approximates (its eq. 4.9, with
 the wrong norms): :meth:`ThesisMEPCE.fit` with ``reduction="projection"`` or ``"variance"``
 instead fits the window plus the action that leaves it and reduces with
-:func:`~unipolicy_rl.world_models.pce.expansion.reduce` (``variance`` keeps the full
+:func:`~unipolicy_rl.polynomial_chaos.expansion.reduce` (``variance`` keeps the full
 variance, as the thesis asks, with the Legendre norms).
 
 This class fits and predicts whole episodes, for uncertainty quantification on its own;
@@ -26,9 +26,9 @@ import time
 
 import torch
 
-from unipolicy_rl.world_models.pce.basis import Basis, multi_indices
-from unipolicy_rl.world_models.pce.expansion import REDUCTIONS, reduce
-from unipolicy_rl.world_models.pce.regression import FitDiagnostics, solve_normal_equations
+from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
+from unipolicy_rl.polynomial_chaos.expansion import REDUCTIONS, reduce
+from unipolicy_rl.polynomial_chaos.regression import FitDiagnostics, rank_revealing_lstsq, solve_normal_equations
 
 MAX_NORMAL_EQUATIONS_CONDITION = 1e6
 
@@ -196,7 +196,7 @@ class ThesisMEPCE:
             free = ~pinned[element]
             rows = xt[element, free].mT.double()  # weighted already: padding rows are zero
             c[element] = 0.0
-            c[element, free] = torch.linalg.lstsq(rows, y[element].double(), driver="gelsd").solution.to(c.dtype)
+            c[element, free] = rank_revealing_lstsq(rows, y[element].double()).to(c.dtype)
         c = c.to(y.dtype)
         return c, diagnostics
 

@@ -1,0 +1,110 @@
+"""The Learner interface: TRPO implements it, and the training loop takes an off-policy learner
+(its own replay buffer, many gradient steps per real step) without a special case."""
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from unipolicy_rl.checkpoint import load_checkpoint, load_policy
+from unipolicy_rl.learners import Learner, TRPOLearner
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["episodes_per_epoch=2", "robot.episode_length=10", "evaluation.grid=1", "progress_bar=false", "workers=1"]
+# train.py with the TRPO learner replaced by the off-policy test double (tests/replay_learner.py).
+WITH_REPLAY_LEARNER = f"""
+import sys
+sys.path.insert(0, {str(ROOT / "tests")!r})
+from replay_learner import ReplayLearner
+import unipolicy_rl.factories as factories
+factories.LEARNERS["trpo"] = ReplayLearner
+"""
+
+
+def run_train_with(patch: str, *overrides: str) -> subprocess.CompletedProcess:
+    script = "\n".join(["import runpy, sys", patch, f"sys.argv = ['train.py', *{list(overrides)!r}]",
+                        f"runpy.run_path({str(ROOT / 'train.py')!r}, run_name='__main__')"])
+    return subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          check=False)
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    with (run_dir / "metrics.csv").open() as file:
+        return list(csv.DictReader(file))
+
+
+@pytest.mark.parametrize("source", ["se", "moe"])
+def test_the_loop_trains_an_off_policy_learner_that_keeps_its_own_buffer(tmp_path, source):
+    model_based = ["source=moe", "imagination.steps_per_batch=20", "imagination.horizon.start=2",
+                   "imagination.horizon.end=2", "world_model.model.hidden=[8]", "world_model.trainer.max_epochs=1",
+                   "imagination.stopping.kind=fixed", "imagination.stopping.max_updates=2",
+                   "imagination.train_on_real=true"] if source == "moe" else []
+    result = run_train_with(WITH_REPLAY_LEARNER, *TINY, *model_based, "epochs=3", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    rows = _rows(tmp_path)
+    real = [row for row in rows if row["imagined"] == "0.0"]
+    # Every real step reaches the learner's own buffer (and, model-based, 2 updates of 20 imagined steps an
+    # epoch), and it takes 2 gradient steps per transition it is given.
+    # (A real row logs the update on the real batch, which comes before the epoch's imagined ones.)
+    per_epoch = 20 + (2 * 20 if source == "moe" else 0)
+    assert [float(row["train/buffer_size"]) for row in real] == [20 + per_epoch * k for k in (0, 1, 2)]
+    last = max(rows, key=lambda row: float(row["train/gradient_steps"]))
+    assert float(last["train/buffer_size"]) == 3 * per_epoch
+    assert float(last["train/gradient_steps"]) == 2 * 3 * per_epoch
+    assert load_policy(tmp_path / "checkpoint.pt").act(torch.zeros(18).numpy()).shape == (4,)
+
+
+def test_an_off_policy_learner_resumes_with_its_buffer_exactly(tmp_path):
+    straight = run_train_with(WITH_REPLAY_LEARNER, *TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
+    first = run_train_with(WITH_REPLAY_LEARNER, *TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
+    resumed = run_train_with(WITH_REPLAY_LEARNER, *TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                             f"hydra.run.dir={tmp_path / 'resumed'}")
+    for result in (straight, first, resumed):
+        assert result.returncode == 0, result.stderr
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")["learner"]
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")["learner"]
+    assert a["gradient_steps"] == b["gradient_steps"] == 120
+    for key, value in a["actor"].items():
+        assert torch.equal(value, b["actor"][key]), f"actor {key} differs after resume"
+
+
+def _trpo_learner():
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.factories import make_learner
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config")
+    torch.manual_seed(0)
+    return make_learner(cfg, 18, 4)
+
+
+def test_trpo_is_a_learner_and_names_what_it_reads_from_a_batch():
+    learner = _trpo_learner()
+    assert isinstance(learner, TRPOLearner) and isinstance(learner, Learner)
+    assert {"observation", "action", "action_log_prob", "loc", "scale", ("next", "reward"),
+            ("next", "done"), ("next", "terminated"), ("next", "observation")} == set(learner.batch_keys)
+
+
+def test_the_normaliser_refresh_reports_the_kl_it_causes_with_the_losses_kl():
+    """``jump`` only moves the normaliser: the policy changes by the Gaussian KL written out by hand;
+    ``preserve`` re-expresses the first layers: it does not change at all."""
+    spread = torch.tensor([0.1, 5.0, 1e-5, 2.0] * 4 + [1.0, 0.3])
+    observations = torch.randn(2, 64, 18, generator=torch.Generator().manual_seed(0)) * spread + torch.arange(18.0)
+    kls = {}
+    for mode in ("preserve", "jump"):
+        learner = _trpo_learner()
+        learner.normalizer_refresh = mode
+        probe = TensorDict({"observation": observations.reshape(-1, 18)}, batch_size=[128])
+        with torch.no_grad():
+            before = learner.policy(probe.clone())
+            kls[mode] = learner.refresh_observation_normalizer(observations)["train/refresh_kl"]
+            after = learner.policy(probe.clone())
+        (m1, s1), (m2, s2) = (before["loc"], before["scale"]), (after["loc"], after["scale"])
+        by_hand = (torch.log(s2 / s1) + (s1**2 + (m1 - m2) ** 2) / (2 * s2**2) - 0.5).sum(-1).mean()
+        assert kls[mode] == pytest.approx(float(by_hand), abs=1e-6)
+    assert abs(kls["preserve"]) < 1e-6 < kls["jump"]

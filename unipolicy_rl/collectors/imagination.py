@@ -1,0 +1,294 @@
+"""Imagined batches for policy updates: where branches start, how long they run, when to stop.
+
+The thesis' Algorithm 5 (MOE-TRPO), done as model-based RL has learned to do it since (MBPO,
+ME-TRPO): after each model fit, the policy trains on imagined trajectories that start from real
+states, either short branches of ``horizon`` steps from any buffered state (MBPO; the horizon
+grows on a schedule) or whole episodes from real start states (the thesis). A branch's last
+step is truncated, never terminated, so the value estimator bootstraps from the critic there.
+How many updates follow a fit is the stopping rule's call: a fixed number (the thesis), or
+ME-TRPO's check of the policy's return under every member.
+
+:class:`Imagination` owns all of that (the imagined env, the start states, the horizon, the
+rule); the training loop asks it for one epoch's batches, ``imagination.epoch(...)``, and
+iterates.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from unipolicy_rl.collectors.real import IMAGINED, label, truncate_last_step
+from unipolicy_rl.collectors.replay import COLLECTED_IN
+from unipolicy_rl.envs.reward import RewardWeights
+from unipolicy_rl.seeding import IMAGINATION, epoch_seed
+from unipolicy_rl.world_models.dynamics import Dynamics
+from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
+
+ROLLOUTS = ("branch", "episode")
+STOPPING_RULES = ("fixed", "metrpo")
+
+
+@dataclass(frozen=True)
+class HorizonSchedule:
+    """Imagined branch length: ``start`` up to epoch ``first_epoch``, then linear to ``end`` at
+    ``last_epoch`` (MBPO grows it from 1 to 25 as the model improves)."""
+
+    start: int = 10
+    end: int = 25
+    first_epoch: int = 5
+    last_epoch: int = 30
+
+    def __post_init__(self) -> None:
+        for name in ("start", "end"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"horizon.{name} must be an integer >= 1, got {value!r}")
+        if not self.first_epoch <= self.last_epoch:
+            raise ValueError(f"horizon.first_epoch ({self.first_epoch!r}) must not exceed "
+                             f"horizon.last_epoch ({self.last_epoch!r})")
+
+    def __call__(self, epoch: int) -> int:
+        if epoch <= self.first_epoch or self.first_epoch == self.last_epoch:
+            return self.start if epoch <= self.first_epoch else self.end
+        progress = min(1.0, (epoch - self.first_epoch) / (self.last_epoch - self.first_epoch))
+        return int(round(self.start + progress * (self.end - self.start)))
+
+
+@dataclass(frozen=True)
+class StoppingRule:
+    """How many imagined policy updates follow each model fit.
+
+    ``fixed``: always ``max_updates`` (the thesis). ``metrpo`` (ME-TRPO): every
+    ``check_every`` updates, the policy's imagined return is measured under every voting member
+    from the same start states; the epoch's updates stop when fewer than
+    ``min_improving_fraction`` of them still see it improve, or at ``max_updates``.
+
+    Who votes is the model's ``voting_members``: every member of an ensemble, elites or not, as
+    ME-TRPO checks every model it trained. Elites are ranked on one-step validation error, a
+    ranking that shifts from fit to fit; the rule asks whether an improvement holds across all
+    the models the data allow, and a member the data fit slightly worse is one of them. A
+    model whose members are design cells has no voters (:func:`check_stopping_rule`).
+    """
+
+    kind: str = "metrpo"
+    max_updates: int = 20
+    check_every: int = 5
+    min_improving_fraction: float = 0.7
+    check_starts: int = 50
+    check_horizon: int = 20
+
+    def __post_init__(self) -> None:
+        if self.kind not in STOPPING_RULES:
+            raise ValueError(f"stopping.kind must be one of {STOPPING_RULES}, got {self.kind!r}")
+        for name in ("max_updates", "check_every", "check_starts", "check_horizon"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"stopping.{name} must be an integer >= 1, got {value!r}")
+        if not 0 < self.min_improving_fraction <= 1:
+            # 0 would never stop early: the fraction improving is never below 0.
+            raise ValueError(f"stopping.min_improving_fraction must lie in (0, 1], got {self.min_improving_fraction!r}")
+
+    def keeps_going(self, baseline: torch.Tensor, current: torch.Tensor) -> tuple[bool, float]:
+        """After a check: whether updates go on, and the fraction of voting members whose return
+        under the policy rose above ``baseline`` (each member's return at the last check)."""
+        improving = float((current > baseline).float().mean())
+        return improving >= self.min_improving_fraction, improving
+
+
+@dataclass(frozen=True)
+class ImaginationSettings:
+    """Imagined data per policy update.
+
+    Args:
+        steps_per_batch: imagined steps in one batch (trajectories x horizon).
+        rollout: ``branch`` (short branches from any real state, horizon on a schedule) or
+            ``episode`` (whole episodes from real start states, as the thesis did).
+        horizon: branch length schedule (``episode`` uses the episode length).
+        member_per_step: draw the predicting member anew at every step instead of once per trajectory.
+        start_epochs: draw imagined trajectories' start states from the real transitions of the
+            latest this many epochs only (None: the whole buffer). TRPO is on-policy: starts near
+            the current policy's own states make its imagined advantages about states it visits.
+        deterministic: imagine with each member's mean prediction, without its noise (the members'
+            spread is then the only randomness; for a model whose noise is independent per output).
+        train_on_real: also take a policy update on each real batch.
+        buffer_capacity: real transitions kept (FIFO).
+        stopping: how many updates follow each model fit.
+    """
+
+    steps_per_batch: int = 5000
+    rollout: str = "branch"
+    horizon: HorizonSchedule = HorizonSchedule()
+    member_per_step: bool = False
+    start_epochs: int | None = None
+    deterministic: bool = False
+    train_on_real: bool = False
+    buffer_capacity: int = 200_000
+    stopping: StoppingRule = StoppingRule()
+
+    def __post_init__(self) -> None:
+        if self.rollout not in ROLLOUTS:
+            raise ValueError(f"rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
+        for name in ("steps_per_batch", "buffer_capacity"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.start_epochs is not None and not (isinstance(self.start_epochs, int) and self.start_epochs >= 1):
+            raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
+
+
+def check_stopping_rule(stopping: StoppingRule, model: Dynamics) -> None:
+    """Refuses ME-TRPO's rule for a model whose members cannot vote (one per design cell), by name."""
+    if stopping.kind == "metrpo" and model.voting_members is None:
+        raise ValueError(f"imagination.stopping.kind=metrpo compares a policy's return under every member, but "
+                         f"{type(model).__name__}'s members model different designs (one per cell), not "
+                         f"alternatives of one robot: use imagination.stopping.kind=fixed with this world model")
+
+
+class Imagination:
+    """Imagined batches from a fitted world model, one epoch at a time.
+
+    Args:
+        model: the world model's dynamics (fitted by the loop before each epoch's imagination).
+        reference_env: an env whose specs the imagined env copies (it is not stepped).
+        reward_weights: the real env's reward weights.
+        settings: imagined data per update, and the stopping rule.
+        seed: the run's seed (each epoch's imagination restarts from its own seed).
+        episode_length: real episode length (the ``episode`` rollout's horizon).
+
+    Raises:
+        ValueError: ``stopping.kind=metrpo`` with a model whose members cannot vote (one per
+            design cell), naming the model.
+    """
+
+    def __init__(self, model: Dynamics, reference_env: EnvBase, reward_weights: RewardWeights,
+                 settings: ImaginationSettings, seed: int, episode_length: int) -> None:
+        check_stopping_rule(settings.stopping, model)
+        stopping = settings.stopping
+        self.model = model
+        self.reference_env = reference_env
+        self.reward_weights = reward_weights
+        self.settings = settings
+        self.stopping = stopping
+        self.seed = seed
+        self.episode_length = episode_length
+
+    @property
+    def train_on_real(self) -> bool:
+        """Whether the policy also takes an update on each real batch."""
+        return self.settings.train_on_real
+
+    def horizon(self, epoch: int) -> int:
+        return self.episode_length if self.settings.rollout == "episode" else self.settings.horizon(epoch)
+
+    def epoch(self, epoch: int, transitions: TensorDictBase, policy: TensorDictModuleBase) -> ImaginedEpoch:
+        """The imagined batches of ``epoch`` (iterate them; each is one policy update's data),
+        branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``."""
+        torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION))
+        horizon = self.horizon(epoch)
+        starts = self._start_sampler(transitions, epoch)
+        env = ImaginedWalkerEnv(
+            make_world_model(self.model, self.reward_weights, self.settings.member_per_step,
+                             self.settings.deterministic),
+            self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
+        )
+        return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts))
+
+    def _start_sampler(self, data: TensorDictBase, epoch: int):
+        pool = data if self.settings.rollout == "branch" else data[data.get("episode_start")]
+        window = self.settings.start_epochs
+        if window is not None and COLLECTED_IN in pool.keys():  # (a buffer from before the key: all of it)
+            pool = pool[pool.get(COLLECTED_IN) > epoch - window]
+        pool = pool.select("state", "design")
+
+        def sample(n: int) -> TensorDictBase:
+            return pool[torch.randint(pool.batch_size[0], (n,))]
+
+        return sample
+
+    def member_returns(self, policy: TensorDictModuleBase, starts: TensorDictBase) -> torch.Tensor:
+        """The deterministic policy's mean imagined return from ``starts`` under each voting member."""
+        world_model = make_world_model(self.model, self.reward_weights, deterministic=True)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            return member_returns(world_model, self.reference_env, policy, starts, self.stopping.check_horizon)
+
+
+class ImaginedEpoch:
+    """One epoch's imagined batches: iterating rolls the policy out once per batch (the loop
+    updates the policy in between) until the stopping rule says stop; :meth:`metrics` then tells
+    how many updates ran and, under ME-TRPO's rule, the fraction of members still improving."""
+
+    def __init__(self, imagination: Imagination, env: ImaginedWalkerEnv, policy: TensorDictModuleBase,
+                 horizon: int, check_starts: TensorDictBase) -> None:
+        self.imagination, self.env, self.policy, self.horizon = imagination, env, policy, horizon
+        self.check_starts = check_starts
+        self.updates = 0
+        self.improving: float | None = None
+        self.rollout_seconds = 0.0  # what the last batch took to imagine (its check included)
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        stopping = self.imagination.stopping
+        checks = self._checks()
+        while True:
+            started = time.perf_counter()
+            if not (self.updates < stopping.max_updates and next(checks)):
+                return
+            with torch.no_grad():
+                rollout = self.env.rollout(self.horizon, self.policy, break_when_any_done=False)
+            truncate_last_step(rollout)
+            self.rollout_seconds = time.perf_counter() - started
+            self.updates += 1
+            yield label(rollout, IMAGINED)
+
+    def _checks(self) -> Iterator[bool]:
+        """Before every update, whether updates may go on (the stopping rule)."""
+        stopping = self.imagination.stopping
+        if stopping.kind == "fixed":
+            while True:
+                yield True
+        baseline = self.imagination.member_returns(self.policy, self.check_starts)
+        while True:
+            yield True
+            if self.updates % stopping.check_every == 0:
+                current = self.imagination.member_returns(self.policy, self.check_starts)
+                going, self.improving = stopping.keeps_going(baseline, current)
+                if not going:
+                    yield False
+                    return
+                baseline = current
+
+    def metrics(self, prefix: str = "model/") -> dict[str, float]:
+        out = {f"{prefix}policy_updates": float(self.updates)}
+        if self.improving is not None:
+            out[f"{prefix}improving_members"] = self.improving
+        return out
+
+
+def imagined_metrics(rollout: TensorDictBase) -> dict[str, float]:
+    """What one imagined batch held: reward, branch return, model faults, horizon, steps."""
+    reward = rollout.get(("next", "reward"))
+    return {
+        "imagined/reward_per_step": reward.mean().item(),
+        "imagined/branch_return": reward.sum(dim=(-2, -1)).mean().item(),
+        "imagined/model_faults": rollout.get(("next", "physics_fault")).sum().item(),
+        "imagined/horizon": float(reward.shape[-2]),
+        "imagined/steps": float(reward.numel()),
+    }
+
+
+__all__ = [
+    "HorizonSchedule",
+    "check_stopping_rule",
+    "Imagination",
+    "ImaginationSettings",
+    "ImaginedEpoch",
+    "StoppingRule",
+    "imagined_metrics",
+]

@@ -1,0 +1,150 @@
+"""What a training run reports besides its learner's figures: real episodes' walking, the
+periodic design-grid evaluation (and the best one so far), the final evaluation, and where the
+rows go (logger, metrics.csv, progress bar). None of it is the algorithm; train.py calls it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import tqdm
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from unipolicy_rl.checkpoint import load_policy
+from unipolicy_rl.envs import DesignDistribution
+from unipolicy_rl.envs.config import env_kwargs
+from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
+from unipolicy_rl.evaluation import evaluate_on_designs, grid_score, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.evaluation.plots import plot_training_curve
+from unipolicy_rl.learners.base import StalledLearning
+from unipolicy_rl.training import metrics_file as columns
+from unipolicy_rl.training.metrics_file import MetricsCSV
+
+
+def episode_metrics(batch: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
+    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended."""
+    done = batch["next", "done"].squeeze(-1)
+    displacement = forward_displacement(batch["next", "observation"])[done].mean().item()
+    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
+    return {
+        columns.REWARD: batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
+        columns.REWARD_PER_STEP: batch["next", "reward"].mean().item(),
+        columns.DISPLACEMENT: displacement,
+        columns.SPEED: mean_forward_speed(displacement, cfg.robot.episode_length, control_period),
+        columns.PHYSICS_FAULTS: batch["next", "physics_fault"].sum().item(),
+    }
+
+
+def evaluation_designs(cfg: DictConfig) -> list:
+    """The evaluation grid: ``evaluation.grid`` designs per axis over the evaluation ranges."""
+    grid = cfg.evaluation
+    return DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+
+
+class PeriodicEvaluation:
+    """The deterministic policy on the design grid in the real env every ``evaluation.every``
+    epochs, and the best such evaluation so far (:func:`grid_score`): a run that walks and then
+    falls back still hands over its best policy.
+
+    Args:
+        cfg: the run's config.
+        best: the best evaluation of the run so far (a resumed run's), or None.
+    """
+
+    def __init__(self, cfg: DictConfig, best: dict | None = None) -> None:
+        self.cfg = cfg
+        self.designs = evaluation_designs(cfg)
+        self.best = best
+        self.improved = False  # whether the last evaluation became the best
+
+    def __call__(self, epoch: int, policy) -> dict[str, float]:
+        """Evaluates if ``epoch`` is due (else returns no metrics)."""
+        self.improved = False
+        every = self.cfg.evaluation.every
+        if not every or epoch % every:
+            return {}
+        results = evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
+                                      seed=self.cfg.seed)
+        summary = summarise(results)
+        metrics = {
+            columns.GRID_MEAN: summary["mean_forward_displacement"],
+            columns.GRID_MIN: summary["min_forward_displacement"],
+            columns.GRID_WALKING: float(summary["walking_designs"]),
+            columns.GRID_REWARD: summary["mean_episode_reward"],
+        }
+        evaluation = {"epoch": epoch, "grid_mean": metrics[columns.GRID_MEAN], "grid_min": metrics[columns.GRID_MIN]}
+        if self.best is None or (grid_score(evaluation["grid_mean"], evaluation["grid_min"])
+                                 > grid_score(self.best["grid_mean"], self.best["grid_min"])):
+            self.best, self.improved = evaluation, True
+        return metrics
+
+
+def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title: str) -> dict:
+    """The saved policy on the evaluation grid (``evaluation.episodes`` per design): CSV, heatmaps,
+    the training curve, and the summary."""
+    loaded = load_policy(checkpoint_path)
+    results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), evaluation_designs(cfg),
+                                  episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
+    out = run_dir / "evaluation"
+    write_csv(results, out / "designs.csv")
+    plot_heatmaps(results, out, title=f"{title} seed {cfg.seed}")
+    metrics_csv = run_dir / columns.FILE_NAME
+    if metrics_csv.is_file():
+        plot_training_curve(metrics_csv, out / "training_curve.png")
+    return summarise(results)
+
+
+# What the progress bar shows: real steps, real and imagined reward, model fit, grid walk.
+SHOWN = {columns.REAL_STEPS: ("steps", "{:.0f}"), columns.REWARD: ("reward", "{:.1f}"),
+         columns.DISPLACEMENT: ("metres", "{:.2f}"), columns.IMAGINED_REWARD_PER_STEP: ("imag_r", "{:.2f}"),
+         columns.MODEL_VALIDATION_MSE: ("model_mse", "{:.3f}"), columns.GRID_MIN: ("grid_min", "{:.2f}"),
+         columns.KL: ("kl", "{:.4f}")}
+
+
+def progress_figures(metrics: dict[str, float]) -> dict[str, str]:
+    return {label: fmt.format(metrics[key]) for key, (label, fmt) in SHOWN.items() if key in metrics}
+
+
+class RunLog:
+    """Where a run's rows go: the TorchRL logger, ``metrics.csv`` (one row per imagined update and one
+    per real epoch, appended over resumes) and the progress bar (one tick per real epoch).
+
+    Args:
+        logger: a TorchRL logger (``cfg.logger``).
+        run_dir: the run folder (``metrics.csv`` goes there).
+        epochs, initial: the run's last epoch and the epoch it starts from.
+        title: the progress bar's label.
+        show: draw the progress bar.
+    """
+
+    def __init__(self, logger, run_dir: Path, epochs: int, initial: int, title: str, show: bool) -> None:
+        self.logger = logger
+        self.csv = MetricsCSV(run_dir / columns.FILE_NAME)
+        self.bar = tqdm.tqdm(total=epochs, initial=initial, disable=not show, desc=title)
+        self.rows = 0
+        self.postfix: dict[str, str] = {}
+
+    def row(self, epoch: int, metrics: dict[str, float]) -> None:
+        self.rows += 1
+        for name, value in metrics.items():
+            self.logger.log_scalar(name, value, step=self.rows)
+        self.csv.append({columns.EPOCH: epoch, **metrics})
+        self.postfix.update(progress_figures(metrics))
+        self.bar.set_postfix(self.postfix, refresh=False)
+
+    def epoch_done(self) -> None:
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+@contextlib.contextmanager
+def naming_the_checkpoint_on_stall(path: Path):
+    """A learner that stopped learning ends the run; its error says which checkpoint the run keeps."""
+    try:
+        yield
+    except StalledLearning as error:
+        raise StalledLearning(f"{error}; the last checkpoint, if any, is {path}") from None
