@@ -106,7 +106,7 @@ def main(cfg: DictConfig) -> dict:
             metrics[columns.COLLECT_TIME] = collected - tick
             metrics[columns.UPDATE_TIME] = time.perf_counter() - collected
             # ---- Evaluation (deterministic policy, real env, design grid) and checkpoint
-            metrics.update(evaluation(epoch, learner.policy))
+            metrics.update(evaluation(epoch, real.real_env_steps, learner.policy))
             if evaluation.improved:
                 checkpoints.save_best(evaluation.best)
             log.row(epoch, {**metrics, columns.ELAPSED: checkpoints.elapsed()})

@@ -359,7 +359,7 @@ def test_the_one_step_pce_sparse_basis_keeps_only_control_interactions():
 def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 
-    result = run_train(*TINY, "source=pce", "workers=1", "epochs=2", "evaluation.every=1",
+    result = run_train(*TINY, "source=pce", "workers=1", "epochs=2", "evaluation.every_steps=1",
                        "imagination.steps_per_batch=60", "imagination.horizon.start=3",
                        "imagination.horizon.end=3", "imagination.stopping.max_updates=2",
                        "imagination.stopping.check_every=2", "imagination.stopping.check_starts=4",
@@ -514,7 +514,7 @@ def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 
     result = run_train(*TINY, "source=pce", "world_model=pce_thesis", "workers=1", "epochs=2",
-                       "evaluation.every=1", "world_model.model.divisions=2", "world_model.model.order=2",
+                       "evaluation.every_steps=1", "world_model.model.divisions=2", "world_model.model.order=2",
                        "imagination.steps_per_batch=60", "imagination.stopping.max_updates=2",
                        f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr

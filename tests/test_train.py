@@ -130,7 +130,7 @@ def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
 def test_the_best_periodic_evaluation_keeps_its_policy_apart_from_the_run(tmp_path):
     from unipolicy_rl.evaluation import evaluate_on_designs, grid_score, summarise
 
-    result = run_train(*TINY, "workers=1", "epochs=4", "evaluation.every=1", "evaluation.grid=2",
+    result = run_train(*TINY, "workers=1", "epochs=4", "evaluation.every_steps=1", "evaluation.grid=2",
                        f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     with (tmp_path / "metrics.csv").open() as file:
@@ -209,7 +209,7 @@ def test_a_resume_takes_the_checkpoints_network_and_refuses_a_conflicting_overri
     assert load_checkpoint(tmp_path / "c" / "checkpoint.pt")["config"]["algo"]["actor_hidden"] == [16]
 
 
-MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every=1", "imagination.steps_per_batch=60",
+MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every_steps=1", "imagination.steps_per_batch=60",
             "imagination.horizon.start=3", "imagination.horizon.end=5", "imagination.horizon.first_epoch=1",
             "imagination.horizon.last_epoch=3", "world_model.model.hidden=[16]",
             "world_model.model.members=3", "world_model.model.elites=2", "world_model.trainer.max_epochs=2",
@@ -241,7 +241,7 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     assert [row["real_env_steps"] for row in real] == ["20.0", "40.0", "60.0"]
     assert real[0]["train/episode_reward"] and not imagined[0]["train/episode_reward"]
     assert imagined[0]["imagined/reward_per_step"] and real[0]["model/validation_mse"]
-    assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every=1
+    assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every_steps=1
     # The run is named for what ran: the design, the world model and the algorithm.
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 

@@ -99,9 +99,9 @@ def test_algo_name_is_one_rule_for_validation_and_the_learner_factory():
     from unipolicy_rl.factories import make_learner
 
     cfg = composed(["algo.name=ppo"])
-    with pytest.raises(ValueError, match=r"algo.name must be one of \['trpo'\], got 'ppo'"):
+    with pytest.raises(ValueError, match=r"algo.name must be one of \['crossq', 'redq', 'sac', 'trpo'\], got 'ppo'"):
         validate_config(cfg)
-    with pytest.raises(ValueError, match=r"algo.name must be one of \['trpo'\], got 'ppo'"):
+    with pytest.raises(ValueError, match=r"algo.name must be one of \['crossq', 'redq', 'sac', 'trpo'\], got 'ppo'"):
         make_learner(cfg, 18, 4)
 
 

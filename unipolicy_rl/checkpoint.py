@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.envs.config import env_kwargs
-from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm
+from unipolicy_rl.policy import make_collecting_policy, make_observation_norm, make_policy_actor
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
@@ -258,7 +258,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     state = load_checkpoint(path)
     cfg = OmegaConf.create(state["config"])
     policy = state["policy"]
-    actor, _ = make_actor_critic(cfg, state["observation_dim"], state["action_dim"])
+    actor = make_policy_actor(cfg, state["observation_dim"], state["action_dim"])
     actor.load_state_dict(policy["actor"])
     normalizer = make_observation_norm(state["observation_dim"], policy["observation_loc"], policy["observation_scale"])
     policy = make_collecting_policy(normalizer, actor).to(device).eval()

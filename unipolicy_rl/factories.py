@@ -8,6 +8,7 @@ in :mod:`unipolicy_rl.envs.config`, so loading a policy needs none of this modul
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import signal
 from collections.abc import Callable
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import RewardSum, TransformedEnv
@@ -29,10 +30,11 @@ from unipolicy_rl.collectors import (
 )
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.config import env_kwargs
-from unipolicy_rl.learners import Learner, TRPOLearner
+from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
+from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
-from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm
+from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm, make_policy_actor
 from unipolicy_rl.validation import check_settings
 from unipolicy_rl.world_models import Dynamics, StateLayout
 from unipolicy_rl.world_models.trainer import Trainer
@@ -166,8 +168,33 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
                        ObservationStatistics(observation_dim), algo.normalizer_refresh, algo.max_consecutive_skips)
 
 
+def off_policy_settings(cfg: DictConfig) -> OffPolicySettings:
+    """An off-policy learner's settings from ``algo`` (its ``name`` is the loss; the actor's own
+    keys belong to the policy)."""
+    fields = {field.name for field in dataclasses.fields(OffPolicySettings)} - {"loss"}
+    algo = OmegaConf.to_container(cfg.algo, resolve=True)
+    settings = {key: tuple(value) if isinstance(value, list) else value for key, value in algo.items() if key in fields}
+    return OffPolicySettings(loss=cfg.algo.name, **settings)
+
+
+def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> OffPolicyLearner:
+    """SAC, CrossQ or REDQ from ``algo``: the tanh-Gaussian actor, TorchRL's loss, critics and replay buffer."""
+    actor = make_policy_actor(cfg, observation_dim, action_dim)
+    normalizer = make_observation_norm(observation_dim)
+    return OffPolicyLearner(off_policy_settings(cfg), actor, normalizer, make_collecting_policy(normalizer, actor),
+                            ObservationStatistics(observation_dim), observation_dim, action_dim)
+
+
 # ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
-LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {"trpo": make_trpo_learner}
+LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
+    "trpo": make_trpo_learner,
+    **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
+}
+
+
+def learner_settings(cfg: DictConfig) -> TrustRegion | OffPolicySettings:
+    """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
+    return make_trust_region(cfg) if cfg.algo.name == "trpo" else off_policy_settings(cfg)
 
 
 def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:

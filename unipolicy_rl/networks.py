@@ -12,13 +12,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+import torch
+from tensordict.nn import AddStateIndependentNormalScale, NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
-from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+from torchrl.modules import BatchRenorm1d, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
-__all__ = ["ACTIVATIONS", "make_actor", "make_critic", "make_mlp"]
+__all__ = ["ACTIVATIONS", "make_actor", "make_critic", "make_mlp", "make_q_network", "make_tanh_actor"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -116,6 +117,72 @@ def make_critic(
         make_mlp(observation_dim, 1, hidden_sizes, activation, output_gain=1.0),
         in_keys=[observation_key],
     )
+
+
+def make_tanh_actor(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (256, 256),
+    activation: str = "relu",
+    *,
+    observation_key: str = "observation",
+) -> ProbabilisticActor:
+    """Tanh-Gaussian policy ``observation -> (loc, scale) -> tanh(sample)`` in ``[-1, 1]``, for SAC-style learners.
+
+    The network outputs the mean and the (softplus-mapped) std of a Gaussian per action; the
+    sample is squashed by tanh into the env's bounds, and its log-probability carries the
+    change-of-variables term (TorchRL's ``TanhNormal``). The deterministic action, for
+    evaluation, is ``tanh(loc)``.
+    """
+    network = nn.Sequential(make_mlp(observation_dim, 2 * action_dim, hidden_sizes, activation, output_gain=0.01),
+                            NormalParamExtractor())
+    return ProbabilisticActor(
+        TensorDictModule(network, in_keys=[observation_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+        return_log_prob=True,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def make_q_network(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (256, 256),
+    activation: str = "relu",
+    batch_renorm: bool = False,
+    *,
+    observation_key: str = "observation",
+) -> ValueOperator:
+    """Action-value network ``(observation, action) -> state_action_value``.
+
+    ``batch_renorm`` puts batch renormalisation (TorchRL's ``BatchRenorm1d``) after the input
+    and every hidden layer, as CrossQ does so that it can drop the target network.
+    """
+    try:
+        activation_class = ACTIVATIONS[activation]
+    except KeyError as err:
+        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
+    layers: list[nn.Module] = [BatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
+    width = observation_dim + action_dim
+    for hidden in hidden_sizes:
+        layers += [nn.Linear(width, hidden), *([BatchRenorm1d(hidden)] if batch_renorm else []), activation_class()]
+        width = hidden
+    layers.append(nn.Linear(width, 1))
+    return ValueOperator(_Concatenated(nn.Sequential(*layers)), in_keys=[observation_key, "action"],
+                         out_keys=["state_action_value"])
+
+
+class _Concatenated(nn.Module):
+    """Applies ``network`` to its inputs concatenated on the last dimension."""
+
+    def __init__(self, network: nn.Module) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, *inputs):
+        return self.network(torch.cat(inputs, dim=-1))
 
 
 def _orthogonal_linear(in_features: int, out_features: int, gain: float) -> nn.Linear:

@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.networks import make_actor, make_critic
+from unipolicy_rl.networks import make_actor, make_critic, make_tanh_actor
 
 NORMALIZED_OBSERVATION = "observation_norm"
 
@@ -30,11 +30,21 @@ def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleB
     return TensorDictSequential(normalizer, actor)
 
 
-def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
-    """The actor and the critic ``cfg.algo`` describes, both reading the normalised observation."""
+def make_policy_actor(cfg: DictConfig, observation_dim: int, action_dim: int) -> TensorDictModuleBase:
+    """The actor ``cfg.algo`` trains, reading the normalised observation: TRPO's Gaussian (its
+    std a free parameter), or the off-policy learners' tanh-Gaussian."""
     algo = cfg.algo
-    actor = make_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
-                       observation_key=NORMALIZED_OBSERVATION)
+    if algo.get("name", "trpo") == "trpo":  # (checkpoints from before algo.name are TRPO's)
+        return make_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
+                          observation_key=NORMALIZED_OBSERVATION)
+    return make_tanh_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation,
+                           observation_key=NORMALIZED_OBSERVATION)
+
+
+def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
+    """TRPO's actor and state-value critic from ``cfg.algo``, both reading the normalised observation."""
+    algo = cfg.algo
+    actor = make_policy_actor(cfg, observation_dim, action_dim)
     critic = make_critic(observation_dim, tuple(algo.critic_hidden), algo.activation,
                          observation_key=NORMALIZED_OBSERVATION)
     return actor, critic

@@ -89,21 +89,31 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "algo.actor_hidden": _sizes,
     "algo.critic_hidden": _sizes,
     "algo.activation": _one_of(set(ACTIVATIONS)),
-    "algo.init_log_std": _number(-20.0, 5.0),
-    "algo.gamma": _number(0.0, 1.0, low_open=True),
-    "algo.lmbda": _number(0.0, 1.0),
-    "algo.normalize_advantage": _flag,
-    "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
-    "algo.critic_epochs": POSITIVE,
-    "algo.critic_minibatch_size": POSITIVE,
-    "algo.max_consecutive_skips": POSITIVE,
-    "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
-    "evaluation.every": _integer(0),
+    "evaluation.every_steps": _integer(0),  # 0: no periodic evaluation
+    "evaluation.dense_until": _integer(0),
+    "evaluation.then_every_steps": POSITIVE,
     "evaluation.grid": POSITIVE,
     "evaluation.episodes": POSITIVE,
     "robot.observation": _one_of(set(OBSERVATIONS)),
     "robot.append_design": _flag,
     "robot.episode_length": POSITIVE,
+}
+
+
+# algo.name -> rules of the keys only that learner reads (an off-policy learner's settings are a
+# dataclass that checks itself: unipolicy_rl.learners.OffPolicySettings).
+ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
+    "trpo": {
+        "algo.init_log_std": _number(-20.0, 5.0),
+        "algo.gamma": _number(0.0, 1.0, low_open=True),
+        "algo.lmbda": _number(0.0, 1.0),
+        "algo.normalize_advantage": _flag,
+        "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
+        "algo.critic_epochs": POSITIVE,
+        "algo.critic_minibatch_size": POSITIVE,
+        "algo.max_consecutive_skips": POSITIVE,
+        "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
+    },
 }
 
 
@@ -138,10 +148,11 @@ def check_settings(cfg: DictConfig, *keys: str) -> None:
     :func:`validate_config` runs every rule; a library entry point that reads a few plain
     settings runs theirs here, so it fails as clearly without validate_config having run.
     """
+    rules = {**RULES, **ALGO_RULES.get(_get(cfg, "algo.name"), {})} if "algo.name" in keys else RULES
     for key in keys:
-        if key in RULES:
+        if key in rules:
             value = _get(cfg, key)
-            problem = RULES[key](value)
+            problem = rules[key](value)
             if problem:
                 raise ValueError(f"{key} {problem}, got {value!r}")
     for joint, rule in JOINT_RULES.items():
@@ -153,11 +164,12 @@ def check_settings(cfg: DictConfig, *keys: str) -> None:
 
 def validate_config(cfg: DictConfig) -> None:
     """Raises ValueError naming the first bad setting of ``cfg`` (key and value)."""
-    check_settings(cfg, *RULES, *(key for joint in JOINT_RULES for key in joint))
+    algo_keys = ALGO_RULES.get(cfg.algo.name, {})
+    check_settings(cfg, *RULES, *algo_keys, *(key for joint in JOINT_RULES for key in joint))
     # Imported here: factories imports the whole training stack.
     from unipolicy_rl.collectors.imagination import check_stopping_rule
     from unipolicy_rl.envs import DesignDistribution
-    from unipolicy_rl.factories import make_dynamics_model, make_trust_region, resolve_device
+    from unipolicy_rl.factories import learner_settings, make_dynamics_model, resolve_device
 
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
@@ -165,7 +177,7 @@ def validate_config(cfg: DictConfig) -> None:
     _built("robot.settings", lambda: instantiate(cfg.robot.settings, _convert_="all"))
     _built("robot.physics", lambda: instantiate(cfg.robot.physics))
     _built("robot.reward", lambda: instantiate(cfg.robot.reward))
-    _built("algo", lambda: make_trust_region(cfg))
+    _built("algo", lambda: learner_settings(cfg))
     _built("device", lambda: resolve_device(cfg.device))
     if cfg.source.kind == "model":  # its world_model and imagination groups are there (JOINT_RULES)
         _built("world_model.trainer", lambda: instantiate(cfg.world_model.trainer))

@@ -209,8 +209,8 @@ def _summary_section(summaries: Sequence) -> Section:
         markdown.table(TABLE_HEADER, [table_row(summary) for summary in summaries]),
         "Mean ± sample sd over finished seeds. Reward and displacement are over the run's final design grid "
         f"(worst design: its lowest cell); a design walks at >= {WALKING_DISPLACEMENT:g} m. Real env steps and "
-        f"wall time to walk: at the first periodic real-env grid evaluation (`evaluation.every`) with a grid mean "
-        f">= {GRID_WALKING_MEAN:g} m and every design >= {WALKING_DISPLACEMENT:g} m; the median over the runs "
+        f"wall time to walk: at the first periodic real-env grid evaluation (`evaluation.every_steps`) with a grid "
+        f"mean >= {GRID_WALKING_MEAN:g} m and every design >= {WALKING_DISPLACEMENT:g} m; the median over the runs "
         "that logged, a run that never walked counting as longer than any that did (so \"not reached\" when "
         "fewer than half walked). The same numbers, unformatted: `summary.csv`.",
     ])

@@ -43,10 +43,57 @@ def evaluation_designs(cfg: DictConfig) -> list:
     return DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
 
 
+def evaluation_points(real_env_steps: int, every_steps: int, dense_until: int, then_every_steps: int) -> int:
+    """How many points of the evaluation schedule lie at or below ``real_env_steps``: every
+    ``every_steps`` real env steps up to ``dense_until`` (``every_steps``, ``2 * every_steps``, ...),
+    then every ``then_every_steps`` after it (``dense_until + then_every_steps``, ...); none when
+    ``every_steps`` is 0."""
+    if every_steps <= 0 or real_env_steps <= 0:
+        return 0
+    dense = min(real_env_steps, dense_until) // every_steps
+    return dense + max(real_env_steps - dense_until, 0) // then_every_steps
+
+
+def _epochs_hit(first: int, spacing: int, count: int, epoch_steps: int) -> tuple[int, int, int]:
+    """Of the ``count`` points ``first, first + spacing, ...`` (count >= 1), the (number, first,
+    last) of the epochs ``ceil(point / epoch_steps)`` that cross them: each point falls into its
+    own epoch when ``spacing >= epoch_steps``; otherwise no epoch between the first and last is
+    skipped."""
+    low, high = -(-first // epoch_steps), -(-(first + (count - 1) * spacing) // epoch_steps)
+    return (count if spacing >= epoch_steps else high - low + 1), low, high
+
+
+def evaluations_done(real_env_steps: int, epoch_steps: int, every_steps: int, dense_until: int,
+                     then_every_steps: int) -> int:
+    """How many periodic evaluations a run of ``epoch_steps``-step epochs has run by
+    ``real_env_steps`` (one after each epoch that crossed at least one schedule point), derived
+    from the step counts alone so that a resumed run needs no state for it. Exact unless the run
+    was resumed with another epoch size (then it counts as if every epoch had this one's)."""
+    dense = evaluation_points(min(real_env_steps, dense_until), every_steps, dense_until, then_every_steps)
+    sparse = evaluation_points(real_env_steps, every_steps, dense_until, then_every_steps) - dense
+    done, dense_last = 0, None
+    if dense:
+        done, _, dense_last = _epochs_hit(every_steps, every_steps, dense, epoch_steps)
+    if sparse:
+        hit, sparse_first, _ = _epochs_hit(dense_until + then_every_steps, then_every_steps, sparse, epoch_steps)
+        # One epoch may have crossed both the last dense point and the first sparse one.
+        done += hit - (sparse_first == dense_last)
+    return done
+
+
 class PeriodicEvaluation:
-    """The deterministic policy on the design grid in the real env every ``evaluation.every``
-    epochs, and the best such evaluation so far (:func:`grid_score`): a run that walks and then
-    falls back still hands over its best policy.
+    """The deterministic policy on the design grid in the real env, one episode per design, on a
+    schedule in real env steps (the same for every source and algorithm): every
+    ``evaluation.every_steps`` up to ``evaluation.dense_until``, then every
+    ``evaluation.then_every_steps`` (:func:`evaluation_points`); and the best such evaluation so
+    far (:func:`grid_score`): a run that walks and then falls back still hands over its best policy.
+
+    After each real epoch it evaluates once if the epoch crossed one or more schedule points,
+    told by the real env steps before and after the epoch, not by anything the process
+    remembers: a resumed run evaluates at the same points as an uninterrupted one. The rows it
+    adds carry the run's ``real_env_steps`` (where it evaluated) and the evaluation's own cost,
+    cumulative over the run (``eval/episodes``, ``eval/env_steps``): evaluation episodes are
+    never training steps, and nothing trains on them.
 
     Args:
         cfg: the run's config.
@@ -59,20 +106,36 @@ class PeriodicEvaluation:
         self.best = best
         self.improved = False  # whether the last evaluation became the best
 
-    def __call__(self, epoch: int, policy) -> dict[str, float]:
-        """Evaluates if ``epoch`` is due (else returns no metrics)."""
+    @property
+    def schedule(self) -> tuple[int, int, int]:
+        """(every_steps, dense_until, then_every_steps)."""
+        settings = self.cfg.evaluation
+        return settings.every_steps, settings.dense_until, settings.then_every_steps
+
+    def due(self, real_env_steps: int, epoch_steps: int) -> bool:
+        """Whether the epoch that brought the run to ``real_env_steps`` (``epoch_steps`` of them
+        its own) crossed a point of the schedule."""
+        return (evaluation_points(real_env_steps, *self.schedule)
+                > evaluation_points(real_env_steps - epoch_steps, *self.schedule))
+
+    def __call__(self, epoch: int, real_env_steps: int, policy) -> dict[str, float]:
+        """Evaluates if the epoch that just brought the run to ``real_env_steps`` crossed a
+        schedule point (else returns no metrics)."""
         self.improved = False
-        every = self.cfg.evaluation.every
-        if not every or epoch % every:
+        epoch_steps = self.cfg.episodes_per_epoch * self.cfg.robot.episode_length  # this epoch's real steps
+        if not self.due(real_env_steps, epoch_steps):
             return {}
         results = evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
                                       seed=self.cfg.seed)
         summary = summarise(results)
+        episodes = evaluations_done(real_env_steps, epoch_steps, *self.schedule) * len(self.designs)
         metrics = {
             columns.GRID_MEAN: summary["mean_forward_displacement"],
             columns.GRID_MIN: summary["min_forward_displacement"],
             columns.GRID_WALKING: float(summary["walking_designs"]),
             columns.GRID_REWARD: summary["mean_episode_reward"],
+            columns.EVAL_EPISODES: float(episodes),
+            columns.EVAL_ENV_STEPS: float(episodes * self.cfg.robot.episode_length),
         }
         evaluation = {"epoch": epoch, "grid_mean": metrics[columns.GRID_MEAN], "grid_min": metrics[columns.GRID_MIN]}
         if self.best is None or (grid_score(evaluation["grid_mean"], evaluation["grid_min"])

@@ -1,0 +1,87 @@
+"""The sample-efficiency league: real env steps (and wall time) to each level, per entry, under one protocol.
+
+    python train.py -m source=se seed=0,1,2 epochs=300 hydra.sweep.dir=runs/se
+    python train.py -m source=moe seed=0,1,2 epochs=60 hydra.sweep.dir=runs/moe
+    python benchmarks/league.py runs/se runs/moe [--out outputs/league] [--baseline se-trpo]
+
+Every run evaluates on the same schedule in real env steps (``evaluation.every_steps``, 2,000
+up to ``evaluation.dense_until``, 100,000, then every ``evaluation.then_every_steps``,
+10,000): the deterministic policy on the 5 x 5 design grid in the real env, one episode per
+design. An entry is a run name (``se-trpo``, ``se-moe-trpo``), its runs the seeds. Per entry it
+prints the seeds and, per level (:mod:`unipolicy_rl.report.league`: (a) first walks the grid,
+(b) walks and stays walking, (c) SE-TRPO's final level), how many runs reached it, the median
+real env steps with a bootstrap 95% interval, the median wall time, and how many times fewer
+real env steps than SE-TRPO and than the best model-free entry; a run that never reached a
+level counts as longer than any that did. Then (d): the grid mean and worst design at 50,000,
+100,000 and 300,000 real env steps. Writes ``league.png`` (grid mean and worst design against
+real env steps, log axis, one band per entry) and ``league.csv`` (the table's numbers) to
+``--out``.
+
+Wall times are the runs' own: compare them only between runs that shared the machine alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from unipolicy_rl.report.league import (
+    BASELINE,
+    BOOTSTRAP_SEED,
+    RESAMPLES,
+    format_league,
+    format_runs,
+    make_entries,
+    plot_league,
+    run_result,
+    write_csv,
+)
+from unipolicy_rl.report.runs import ReportError, discover, load_run, run_names
+
+DEFAULT_OUT = Path("outputs") / "league"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("roots", nargs="+", type=Path, help="sweep or run directories")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"where the figure and CSV go ({DEFAULT_OUT})")
+    parser.add_argument("--baseline", default=BASELINE, help=f"the entry the others are compared with ({BASELINE})")
+    parser.add_argument("--resamples", type=int, default=RESAMPLES, help=f"bootstrap resamples ({RESAMPLES})")
+    parser.add_argument("--seed", type=int, default=BOOTSTRAP_SEED, help=f"the bootstrap's seed ({BOOTSTRAP_SEED})")
+    args = parser.parse_args(argv)
+
+    try:
+        paths, _ = discover(args.roots, exclude=[args.out])
+    except ReportError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    results, left_out = [], []
+    for path, name in zip(paths, run_names(paths, args.roots), strict=True):
+        run = load_run(path, name)
+        if run.config is None or run.source is None:
+            left_out.append(f"{name}: {'; '.join(run.problems) or 'no config'}")
+            continue
+        result = run_result(run)
+        if not result.evaluations:
+            left_out.append(f"{name}: no periodic grid evaluation logged (yet, or evaluation.every_steps=0)")
+            continue
+        results.append(result)
+    for line in left_out:
+        print(f"left out {line}", file=sys.stderr)
+    if not results:
+        print("error: no run with a periodic grid evaluation", file=sys.stderr)
+        return 1
+
+    entries = make_entries(results, resamples=args.resamples, seed=args.seed)
+    print(format_runs(results))
+    print()
+    print(format_league(entries, baseline=args.baseline))
+    figure = plot_league(entries, args.out / "league.png")
+    table = write_csv(entries, args.out / "league.csv", baseline=args.baseline)
+    print(f"\nwrote {figure} and {table}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

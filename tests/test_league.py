@@ -1,0 +1,261 @@
+"""The sample-efficiency league: the periodic evaluation's schedule in real env steps (and over a
+resume), and the protocol's levels, medians, intervals and ratios on hand-made metrics files."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import itertools
+import math
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from unipolicy_rl.evaluation import DesignResult
+from unipolicy_rl.report import league
+from unipolicy_rl.report.runs import load_run
+from unipolicy_rl.training import metrics_file as columns
+from unipolicy_rl.training import progress
+from unipolicy_rl.training.progress import PeriodicEvaluation, evaluation_points, evaluations_done
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# -- the schedule ------------------------------------------------------------------------
+def schedule_config(episodes_per_epoch: int = 10, **evaluation):
+    """The composed config, epochs of ``episodes_per_epoch`` x 100 steps (1,000 by default), a 2 x 2
+    grid, and ``evaluation`` overrides."""
+    overrides = [f"episodes_per_epoch={episodes_per_epoch}", "robot.episode_length=100", "evaluation.grid=2",
+                 *(f"evaluation.{key}={value}" for key, value in evaluation.items())]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+@pytest.fixture
+def grid_stub(monkeypatch):
+    """The grid evaluation replaced by fixed figures (the n-th call walks n / 2 m on every design)."""
+    calls = []
+
+    def evaluate(policy, env_kwargs, designs, episodes_per_design, seed):
+        calls.append(len(designs))
+        metres = len(calls) / 2
+        return [DesignResult(d.length, d.density, 1, 10 * metres, 0.0, metres, 0.0, metres / 10, 0) for d in designs]
+
+    monkeypatch.setattr(progress, "evaluate_on_designs", evaluate)
+    return calls
+
+
+def evaluated_epochs(evaluation: PeriodicEvaluation, epochs) -> dict[int, dict]:
+    """Epoch -> the evaluation's metrics, for the epochs it evaluated after (as train.py calls it)."""
+    epoch_steps = evaluation.cfg.episodes_per_epoch * evaluation.cfg.robot.episode_length
+    return {epoch: metrics for epoch in epochs if (metrics := evaluation(epoch, epoch * epoch_steps, policy=None))}
+
+
+SCHEDULE = {"every_steps": 2000, "dense_until": 10000, "then_every_steps": 5000}
+
+
+def test_the_evaluation_runs_at_the_schedule_points_in_real_steps(grid_stub):
+    cfg = schedule_config(**SCHEDULE)
+    evaluation = PeriodicEvaluation(cfg)
+    done = evaluated_epochs(evaluation, range(1, 21))
+    assert list(done) == [2, 4, 6, 8, 10, 15, 20]
+    assert len(grid_stub) == 7 and grid_stub[0] == 4  # one episode per design of the 2 x 2 grid
+    # The evaluations' own episodes and steps, cumulative, apart from the training steps.
+    assert [m[columns.EVAL_EPISODES] for m in done.values()] == [4.0, 8.0, 12.0, 16.0, 20.0, 24.0, 28.0]
+    assert done[20][columns.EVAL_ENV_STEPS] == 28 * 100
+    assert done[4][columns.GRID_MEAN] == 1.0 and evaluation.best["epoch"] == 20  # each walks further: the last
+
+
+def test_a_resumed_evaluation_continues_at_the_same_points(grid_stub):
+    cfg = schedule_config(**SCHEDULE)
+    straight = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 21))
+    first = PeriodicEvaluation(cfg)
+    evaluated_epochs(first, range(1, 8))
+    resumed = evaluated_epochs(PeriodicEvaluation(cfg, best=first.best), range(8, 21))  # a fresh process
+    assert list(resumed) == [8, 10, 15, 20]
+    assert [m[columns.EVAL_EPISODES] for m in resumed.values()] == \
+        [straight[epoch][columns.EVAL_EPISODES] for epoch in resumed]
+
+
+def test_an_epoch_crossing_several_points_evaluates_once_and_zero_turns_it_off(grid_stub):
+    cfg = schedule_config(episodes_per_epoch=35, **SCHEDULE)
+    # 3,500-step epochs: the first crosses 2,000, the second 4,000 and 6,000 (one evaluation), the
+    # third 8,000 and 10,000, the fourth (to 14,000) none, then 15,000 and 20,000.
+    done = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 7))
+    assert list(done) == [1, 2, 3, 5, 6] and done[6][columns.EVAL_EPISODES] == 5 * 4
+    off = schedule_config(every_steps=0)
+    assert not evaluated_epochs(PeriodicEvaluation(off), range(1, 30))
+
+
+@pytest.mark.parametrize(("every", "until", "then", "epoch"),
+                         list(itertools.product((1, 3, 7), (0, 10, 21), (1, 4, 9), (1, 2, 5, 8))))
+def test_the_evaluation_count_is_the_number_of_epochs_that_crossed_a_point(every, until, then, epoch):
+    crossed = 0
+    for steps in range(epoch, 200, epoch):
+        crossed += evaluation_points(steps, every, until, then) > evaluation_points(steps - epoch, every, until, then)
+        assert evaluations_done(steps, epoch, every, until, then) == crossed
+
+
+def test_the_schedule_is_every_step_setting_up_to_the_dense_part_then_the_sparse_one():
+    points = [s for s in range(1, 130_001) if evaluation_points(s, 2000, 100_000, 10_000)
+              > evaluation_points(s - 1, 2000, 100_000, 10_000)]
+    assert points[:3] == [2000, 4000, 6000] and points[49:] == [100_000, 110_000, 120_000, 130_000]
+
+
+# -- hand-made runs ----------------------------------------------------------------------
+EVALUATED_COLUMNS = ["epoch", "imagined", columns.REAL_STEPS, columns.ELAPSED, columns.GRID_MEAN, columns.GRID_MIN]
+
+
+def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple[int, float, float]],
+              last: int) -> Path:
+    """A run folder as train.py leaves it: its config, Hydra's choices and a metrics.csv of
+    1,000-step epochs up to ``last`` real steps (one second each), evaluated at 2,000-step
+    points up to 100,000 and 10,000-step ones after; ``segments`` are ``(from step, grid mean,
+    worst design)``, each holding until the next."""
+    path = root / f"{entry}_seed{seed}"
+    (path / ".hydra").mkdir(parents=True)
+    config = {"run_name": entry, "seed": seed, "source": {"name": entry.split("-")[1] if kind == "model" else "se",
+                                                           "kind": kind},
+              "episodes_per_epoch": 10, "robot": {"episode_length": 100}, "epochs": last // 1000,
+              "evaluation": {"every_steps": 2000, "dense_until": 100_000, "then_every_steps": 10_000}}
+    OmegaConf.save(OmegaConf.create(config), path / ".hydra" / "config.yaml")
+    choices = {"hydra": {"runtime": {"choices": {"design": "se"}}}}
+    OmegaConf.save(OmegaConf.create(choices), path / ".hydra" / "hydra.yaml")
+    with (path / "metrics.csv").open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=EVALUATED_COLUMNS)
+        writer.writeheader()
+        for epoch in range(1, last // 1000 + 1):
+            steps = epoch * 1000
+            if kind == "model":  # an imagined batch's row first: no evaluation on it
+                writer.writerow({"epoch": epoch, "imagined": 1.0, columns.REAL_STEPS: steps - 1000,
+                                 columns.ELAPSED: epoch - 0.5})
+            row = {"epoch": epoch, "imagined": 0.0, columns.REAL_STEPS: steps, columns.ELAPSED: float(epoch)}
+            if evaluation_points(steps, 2000, 100_000, 10_000) > evaluation_points(steps - 1000, 2000, 100_000, 10_000):
+                mean, worst = next((m, w) for start, m, w in reversed(segments) if start <= steps)
+                row.update({columns.GRID_MEAN: mean, columns.GRID_MIN: worst})
+            writer.writerow(row)
+    return path
+
+
+RUNS = {
+    # crosses 3 m once at 4,000 and falls back; walks from 10,000 on; 5 m / 2.5 m at 30,000
+    ("se-trpo", "real", 0): ([(0, 0.5, -0.2), (4000, 3.2, 1.1), (6000, 2.5, 0.8), (10_000, 3.5, 1.5),
+                              (30_000, 5.2, 2.6), (60_000, 5.5, 3.0)], 120_000),
+    # walks three times in a row from 6,000 (exactly at the thresholds), 5 m / 2.5 m at 20,000 (exactly)
+    ("se-trpo", "real", 1): ([(0, 1.0, 0.0), (6000, 3.0, 1.0), (8000, 4.0, 2.0), (20_000, 5.0, 2.5)], 110_000),
+    # never walks: the mean just short, then the worst design just short; stopped at 60,000
+    ("se-trpo", "real", 2): ([(0, 2.9, 1.5), (40_000, 3.5, 0.9)], 60_000),
+    # walks once at 2,000 and falls back for good
+    ("se-moe-trpo", "model", 0): ([(0, 0.0, -0.5), (2000, 3.1, 1.2), (4000, 1.0, 0.1)], 20_000),
+    ("se-moe-trpo", "model", 1): ([(0, 0.0, 0.0), (2000, 3.5, 1.5), (4000, 5.1, 2.6)], 20_000),
+    ("de-trpo", "real", 0): ([(0, 0.0, 0.0), (4000, 3.0, 1.0)], 20_000),
+}
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("league")
+    for (entry, kind, seed), (segments, last) in RUNS.items():
+        write_run(root, entry, kind, seed, segments, last)
+    return root
+
+
+@pytest.fixture(scope="module")
+def runs(sweep) -> dict[tuple[str, int], league.RunResult]:
+    results = {}
+    for entry, _, seed in RUNS:
+        path = sweep / f"{entry}_seed{seed}"
+        results[entry, seed] = league.run_result(load_run(path, path.name))
+    return results
+
+
+@pytest.fixture(scope="module")
+def entries(runs) -> dict[str, league.Entry]:
+    return {entry.name: entry for entry in league.make_entries(list(runs.values()))}
+
+
+def steps_at(result: league.RunResult) -> dict[str, float | None]:
+    return {key: (found.steps if found else None) for key, found in result.levels.items()}
+
+
+def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs):
+    assert steps_at(runs["se-trpo", 0]) == {"first_walk": 4000, "stays_walking": 10_000, "se_trpo_final": 30_000}
+    assert runs["se-trpo", 0].levels["first_walk"].seconds == 4.0  # wall time at it: time/elapsed
+    assert steps_at(runs["se-moe-trpo", 0]) == {"first_walk": 2000, "stays_walking": None, "se_trpo_final": None}
+
+
+def test_three_walking_evaluations_in_a_row_stay_walking_from_the_first_of_them(runs):
+    assert steps_at(runs["se-trpo", 1]) == {"first_walk": 6000, "stays_walking": 6000, "se_trpo_final": 20_000}
+    assert steps_at(runs["se-moe-trpo", 1]) == {"first_walk": 2000, "stays_walking": 2000, "se_trpo_final": 4000}
+
+
+def test_a_run_short_of_either_threshold_never_walks(runs):
+    assert steps_at(runs["se-trpo", 2]) == {"first_walk": None, "stays_walking": None, "se_trpo_final": None}
+    evaluations = runs["se-trpo", 2].evaluations
+    assert [e.steps for e in evaluations[:3]] == [2000, 4000, 6000] and evaluations[-1].steps == 60_000
+
+
+def test_the_grid_is_read_at_the_first_evaluation_at_or_after_each_milestone(runs, entries):
+    se0, se2 = runs["se-trpo", 0].milestones, runs["se-trpo", 2].milestones
+    assert (se0[50_000].steps, se0[50_000].grid_mean, se0[50_000].grid_min) == (50_000, 5.2, 2.6)
+    assert (se0[100_000].grid_mean, se0[100_000].grid_min) == (5.5, 3.0) and se0[300_000] is None
+    assert se2[50_000].grid_min == 0.9 and se2[100_000] is None  # stopped at 60,000
+    assert entries["se-trpo"].milestones[50_000] == (5.0, 2.5, 3)  # medians of (5.2, 5.0, 3.5), (2.6, 2.5, 0.9)
+    assert entries["se-trpo"].milestones[100_000] == (5.25, 2.75, 2)
+    assert 300_000 not in entries["se-trpo"].milestones
+
+
+def test_a_run_that_never_reached_a_level_counts_as_longer_than_any_that_did(entries):
+    se = entries["se-trpo"].levels
+    assert (se["first_walk"].reached, se["first_walk"].runs, se["first_walk"].steps) == (2, 3, 6000)
+    assert se["stays_walking"].steps == 10_000 and se["se_trpo_final"].steps == 30_000  # the larger of the two
+    assert se["first_walk"].seconds == 6.0
+    moe = entries["se-moe-trpo"].levels
+    assert moe["first_walk"].steps == 2000
+    assert math.isinf(moe["stays_walking"].steps) and moe["stays_walking"].reached == 1  # 1 of 2: not reached
+    assert not entries["se-moe-trpo"].model_free and entries["de-trpo"].model_free
+
+
+def test_the_bootstrap_interval_holds_the_median_and_is_reproducible(entries):
+    for entry in entries.values():
+        for stats in entry.levels.values():
+            low, high = stats.steps_interval
+            assert low <= stats.steps <= high
+    values = [4000, 6000, math.inf]
+    assert league.bootstrap_interval(values, seed=3) == league.bootstrap_interval(values, seed=3)
+    assert league.bootstrap_interval(values) == (4000, math.inf)  # a bound may be "not reached"
+    low, high = league.bootstrap_interval([1.0, 2.0, 3.0, 4.0, 5.0], resamples=2000, seed=1)
+    assert 1.0 <= low <= 3.0 <= high <= 5.0 and low < high
+    assert league.bootstrap_interval([7.0]) == (7.0, 7.0)
+
+
+def test_ratios_against_se_trpo_and_the_best_model_free_entry(entries):
+    ordered = list(entries.values())
+    assert [entry.name for entry in ordered] == ["se-trpo", "de-trpo", "se-moe-trpo"]
+    assert league.best_model_free(ordered, "first_walk").name == "de-trpo"  # 4,000 < 6,000
+    assert league.best_model_free(ordered, "se_trpo_final").name == "se-trpo"  # de-trpo never got there
+    assert league.ratio_lines(ordered, "first_walk") == {
+        "se-trpo": ("1.0x fewer", "0.7x fewer"),
+        "de-trpo": ("1.5x fewer", "1.0x fewer"),
+        "se-moe-trpo": ("3.0x fewer", "2.0x fewer"),
+    }
+    assert league.ratio_lines(ordered, "se_trpo_final")["de-trpo"] == ("not reached", "not reached")
+    assert league.ratio_lines(ordered, "stays_walking")["se-moe-trpo"] == ("not reached", "not reached")
+    assert league.fewer(math.inf, 5.0) == math.inf and math.isnan(league.fewer(math.inf, math.inf))
+
+
+def test_the_benchmark_prints_the_table_and_draws_the_figure(sweep, tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("league_benchmark", ROOT / "benchmarks" / "league.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    assert benchmark.main([str(sweep), "--out", str(tmp_path / "out"), "--resamples", "500"]) == 0
+    printed = capsys.readouterr().out
+    assert "(a) first_walk" in printed and "(c) se_trpo_final" in printed
+    assert "6,000 [4,000, not reached]" in printed
+    assert "5.00 / 2.50 (3/3)" in printed and "3.0x fewer" in printed
+    assert (tmp_path / "out" / "league.png").stat().st_size > 0
+    with (tmp_path / "out" / "league.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 3 * 3 and {row["entry"] for row in rows} == {"se-trpo", "de-trpo", "se-moe-trpo"}

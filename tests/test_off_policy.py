@@ -1,0 +1,131 @@
+"""SAC, CrossQ and REDQ as learners: each takes a correct step, moves its targets as configured,
+meets its entropy target, acts deterministically with tanh(loc), refuses bad settings by name,
+and a SAC run resumes exactly."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from unipolicy_rl.checkpoint import load_checkpoint
+from unipolicy_rl.factories import make_learner
+from unipolicy_rl.learners import Learner, OffPolicyLearner
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def config(algo: str, *overrides: str):
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=[f"algo={algo}", "algo.actor_hidden=[32]", "algo.critic_hidden=[32]",
+                                            "algo.batch_size=32", "algo.learning_starts=0",
+                                            "algo.buffer_capacity=10000", *overrides])
+
+
+def transitions(n: int, observation_dim: int, action_dim: int, seed: int = 0, terminal: bool = False) -> TensorDict:
+    """Random transitions of a toy problem whose reward is ``-4 (action - 0.5)^2`` (``terminal``: every
+    one ends its episode, so an action's value is its reward alone)."""
+    g = torch.Generator().manual_seed(seed)
+    observation = torch.randn(n, observation_dim, generator=g)
+    action = torch.rand(n, action_dim, generator=g) * 2 - 1
+    rewards = -4 * (action - 0.5).pow(2).sum(-1, keepdim=True)
+    flags = torch.full((n, 1), terminal)
+    return TensorDict({"observation": observation, "action": action,
+                       "next": {"observation": torch.randn(n, observation_dim, generator=g), "reward": rewards,
+                                "done": flags, "terminated": flags}}, batch_size=[n])
+
+
+@pytest.mark.parametrize("algo", ["sac", "crossq", "redq"])
+def test_each_learner_takes_steps_that_lower_its_critic_loss(algo):
+    torch.manual_seed(0)
+    learner = make_learner(config(algo, "algo.updates_per_step=1"), 3, 1)
+    assert isinstance(learner, OffPolicyLearner) and isinstance(learner, Learner)
+    data = transitions(64, 3, 1)
+    first = learner.update(data)
+    for _ in range(5):
+        last = learner.update(data)
+    assert learner.gradient_steps == 6 * 64  # one step per new transition (UTD 1)
+    assert last["train/loss_critic"] < first["train/loss_critic"]
+    assert last["train/buffer_size"] == 6 * 64
+
+
+def test_sac_target_critics_follow_the_critics_at_the_polyak_rate_and_crossq_has_none():
+    torch.manual_seed(0)
+    learner = make_learner(config("sac", "algo.target_update_rate=0.1", "algo.updates_per_step=1"), 3, 1)
+    loss = learner.loss
+    online = loss.qvalue_network_params.flatten_keys()
+    target = loss.target_qvalue_network_params.flatten_keys()
+    before = {key: value.detach().clone() for key, value in target.items()}
+    learner.update(transitions(1, 3, 1))  # one transition: one gradient step
+    for key, value in target.items():
+        expected = 0.9 * before[key] + 0.1 * online[key].detach()
+        torch.testing.assert_close(value.detach(), expected)
+    assert any(not torch.equal(value.detach(), before[key]) for key, value in target.items())
+    crossq = make_learner(config("crossq"), 3, 1)
+    assert crossq.target_update is None
+
+
+def test_the_temperature_holds_the_policys_entropy_at_its_target():
+    """One action, a reward peaked at 0.5: the actor would narrow without end, the learned
+    temperature stops it where the entropy meets the target (``auto``: -1 for one action)."""
+    torch.manual_seed(0)
+    learner = make_learner(config("sac", "algo.learning_rate=0.003", "algo.updates_per_step=1"), 2, 1)
+    for seed in range(10):
+        learner.update(transitions(200, 2, 1, seed=seed, terminal=True))
+    observations = TensorDict({"observation": torch.randn(4000, 2)}, batch_size=[4000])
+    with torch.no_grad():
+        log_prob = learner.policy(observations)["action_log_prob"]
+    assert float(-log_prob.mean()) == pytest.approx(-1.0, abs=0.3)
+
+
+def test_the_deterministic_action_is_the_tanh_of_the_mean():
+    learner = make_learner(config("sac"), 3, 2)
+    observation = TensorDict({"observation": torch.randn(5, 3)}, batch_size=[5])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = learner.policy(observation.clone())
+    torch.testing.assert_close(out["action"], torch.tanh(out["loc"]))
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ("algo.num_critics=0", "algo.num_critics must be an integer >= 1, got 0"),
+        ("algo.updates_per_step=0.5", "algo.updates_per_step .* must be >= 1, got 0.5"),
+        ("algo.batch_size=0", "algo.batch_size must be an integer >= 1, got 0"),
+        ("algo.target_update_rate=null", "target_update_rate must be set for sac"),
+    ],
+)
+def test_bad_learner_settings_are_refused_by_name(override, match):
+    with pytest.raises(ValueError, match=match):
+        make_learner(config("sac", override), 3, 1)
+
+
+def run_train(*overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300, check=False)
+
+
+SAC_TINY = ["algo=sac", "episodes_per_epoch=2", "robot.episode_length=10", "evaluation.grid=1", "progress_bar=false",
+            "workers=1", "algo.actor_hidden=[16]", "algo.critic_hidden=[16]", "algo.batch_size=8",
+            "algo.learning_starts=10", "algo.buffer_capacity=1000", "algo.updates_per_step=2"]
+
+
+def test_a_sac_run_resumes_exactly_and_refuses_bad_settings_at_start_up(tmp_path):
+    straight = run_train(*SAC_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
+    first = run_train(*SAC_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
+    resumed = run_train(*SAC_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    for result in (straight, first, resumed):
+        assert result.returncode == 0, result.stderr
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")["learner"]
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")["learner"]
+    assert a["gradient_steps"] == b["gradient_steps"] == 2 * 3 * 20
+    for key, value in a["loss"].items():
+        assert torch.equal(value, b["loss"][key]), f"{key} differs after resume"
+    refused = run_train(*SAC_TINY, "algo.num_critics=0", "epochs=1", f"hydra.run.dir={tmp_path / 'bad'}")
+    assert refused.returncode != 0 and "algo.num_critics must be an integer >= 1, got 0" in refused.stderr
+    assert not (tmp_path / "bad" / "metrics.csv").exists()
