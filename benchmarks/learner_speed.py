@@ -24,6 +24,7 @@ from tensordict import TensorDict
 
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.factories import make_learner
+from unipolicy_rl.policy import NORMALIZED_OBSERVATION
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
 OBSERVATIONS, ACTIONS = 18, 4
@@ -46,6 +47,7 @@ def transitions(n: int, trpo: bool = False) -> TensorDict:
     if trpo:  # the behaviour policy's figures TRPO's loss reads, and episode ends
         data["action_log_prob"] = torch.zeros(n)
         data["loc"], data["scale"] = torch.zeros(n, ACTIONS), torch.ones(n, ACTIONS)
+        data[NORMALIZED_OBSERVATION] = data["observation"]  # what the collecting policy adds (identity at first)
         data = data.reshape(10, n // 10)
         data["next", "done"][:, -1] = True
         data["next", "truncated"][:, -1] = True
