@@ -4,8 +4,8 @@ A checkpoint holds everything a run needs to continue bit-for-bit (the learner's
 optimisers, observation statistics, RNG; the collector's position; for a model-based run its
 world model and replay buffer; the best periodic evaluation so far) and its resolved config, so
 ``load_policy(path)`` can rebuild the policy without any other file. Its layout is defined here
-and nowhere else: :func:`training_state` writes it, :func:`restore_training_state` reads it
-back, :func:`policy_only` cuts it to the policy, and older formats are read through
+and nowhere else: :func:`training_state` writes it (with ``resumable=False``, the policy
+alone), :func:`restore_training_state` reads it back, and older formats are read through
 :func:`_upgraded`.
 
 This module imports no collector, world model or learner: loading a policy to run or evaluate
@@ -73,12 +73,14 @@ def load_checkpoint(path: str | Path) -> dict:
 
 
 def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim: int, action_dim: int, learner,
-                   collector, world=None, best_evaluation: dict | None = None) -> dict:
+                   collector, world=None, best_evaluation: dict | None = None, resumable: bool = True) -> dict:
     """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds.
 
     ``learner`` is a :class:`~unipolicy_rl.learners.Learner`, ``collector`` the real collector,
     ``world`` a model-based run's :class:`~unipolicy_rl.factories.WorldModelParts` (or None), and
-    ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst)."""
+    ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst).
+    ``resumable=False`` writes the policy alone, marked so a resume from it is refused, without
+    asking the learner, collector or world model for their state."""
     state = {
         "format": CHECKPOINT_FORMAT,
         "epoch": epoch,
@@ -87,23 +89,15 @@ def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim:
         "observation_dim": observation_dim,
         "action_dim": action_dim,
         "policy": learner.policy_state(),
-        "learner": learner.state_dict(),
-        "collector": collector.state_dict(),
         "best_evaluation": best_evaluation,
     }
+    if not resumable:
+        return {**state, "resumable": False}
+    state["learner"], state["collector"] = learner.state_dict(), collector.state_dict()
     if world is not None:
         state["world_model"] = world.model.state_dict()
         state["replay_buffer"] = world.buffer.state_dict()
     return state
-
-
-RESUME_ONLY = ("learner", "collector", "world_model", "replay_buffer")
-
-
-def policy_only(state: dict) -> dict:
-    """A training state cut to the policy (no learner, collector, world model or buffer): enough for
-    :func:`load_policy` and evaluation, marked so a resume from it is refused."""
-    return {**{key: value for key, value in state.items() if key not in RESUME_ONLY}, "resumable": False}
 
 
 def check_resumable(state: dict, path: str | Path) -> None:
@@ -149,15 +143,15 @@ class RunCheckpoints:
     def elapsed(self) -> float:
         return self.elapsed_before + time.perf_counter() - self.started
 
-    def state(self, best_evaluation: dict | None) -> dict:
+    def state(self, best_evaluation: dict | None, resumable: bool = True) -> dict:
         return training_state(epoch=self.parts["collector"].epoch, elapsed=self.elapsed(),
-                              best_evaluation=best_evaluation, **self.parts)
+                              best_evaluation=best_evaluation, resumable=resumable, **self.parts)
 
     def save(self, best_evaluation: dict | None) -> Path:
         return save_checkpoint(self.path, self.state(best_evaluation))
 
     def save_best(self, best_evaluation: dict) -> Path:
-        return save_checkpoint(self.best_path, policy_only(self.state(best_evaluation)))
+        return save_checkpoint(self.best_path, self.state(best_evaluation, resumable=False))
 
 
 def _upgraded(state: dict) -> dict:

@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
@@ -52,6 +52,18 @@ class Learner(Protocol):
 
     def load_state_dict(self, state: dict) -> None:
         ...
+
+
+def policy_state(actor: TensorDictModuleBase, statistics) -> dict:
+    """A learner's :meth:`Learner.policy_state`: the actor's weights and the normaliser's statistics."""
+    return {"actor": actor.state_dict(), "observation_loc": statistics.loc, "observation_scale": statistics.scale}
+
+
+def observation_probe(observations: torch.Tensor) -> TensorDict:
+    """``observations`` ``[..., size]`` as a flat batch of raw ``observation``: what a refresh
+    compares the policy on, before and after."""
+    flat = observations.reshape(-1, observations.shape[-1])
+    return TensorDict({"observation": flat}, batch_size=[flat.shape[0]])
 
 
 class StalledLearning(RuntimeError):

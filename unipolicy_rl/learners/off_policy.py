@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch.distributions import Normal, kl_divergence
 from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
@@ -28,6 +28,7 @@ from torchrl.envs.transforms import ObservationNorm
 from torchrl.objectives import CrossQLoss, LossModule, REDQLoss, SACLoss, SoftUpdate
 
 from unipolicy_rl.collectors.real import is_imagined
+from unipolicy_rl.learners.base import observation_probe, policy_state
 from unipolicy_rl.networks import make_q_network
 from unipolicy_rl.observation_statistics import ObservationStatistics
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION
@@ -203,8 +204,7 @@ class OffPolicyLearner:
                 "entropy": float(losses.get("entropy", torch.tensor(math.nan)).detach())}
 
     def refresh_observation_normalizer(self, observations: torch.Tensor) -> dict[str, float]:
-        probe = TensorDict({"observation": observations.reshape(-1, observations.shape[-1])},
-                           batch_size=[observations[..., 0].numel()])
+        probe = observation_probe(observations)
         with torch.no_grad():
             before = self._gaussian(probe)
             self.statistics.update(observations)
@@ -218,8 +218,7 @@ class OffPolicyLearner:
         return Normal(params["loc"], params["scale"])
 
     def policy_state(self) -> dict:
-        return {"actor": self.actor.state_dict(), "observation_loc": self.statistics.loc,
-                "observation_scale": self.statistics.scale}
+        return policy_state(self.actor, self.statistics)
 
     def state_dict(self) -> dict:
         return {

@@ -10,11 +10,11 @@ state to checkpoint.
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.learners.base import StalledLearning
+from unipolicy_rl.learners.base import StalledLearning, observation_probe, policy_state
 from unipolicy_rl.objectives import TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 
@@ -60,8 +60,7 @@ class TRPOLearner:
 
     def refresh_observation_normalizer(self, observations: torch.Tensor) -> dict[str, float]:
         """The trust region does not bound what a refresh does to the policy: its KL is logged."""
-        probe = TensorDict({"observation": observations.reshape(-1, observations.shape[-1])},
-                           batch_size=[observations[..., 0].numel()])
+        probe = observation_probe(observations)
         with torch.no_grad():
             before = self.loss.policy_distribution(self.normalizer(probe.clone()))
             self.statistics.update(observations)
@@ -70,8 +69,7 @@ class TRPOLearner:
             return {"train/refresh_kl": self.loss.mean_kl(before, after).item()}
 
     def policy_state(self) -> dict:
-        return {"actor": self.actor.state_dict(), "observation_loc": self.statistics.loc,
-                "observation_scale": self.statistics.scale}
+        return policy_state(self.actor, self.statistics)
 
     def state_dict(self) -> dict:
         return {
