@@ -7,9 +7,12 @@ import csv
 import importlib.util
 import itertools
 import math
+import sys
 from pathlib import Path
 
 import pytest
+import torch
+import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -259,3 +262,32 @@ def test_the_benchmark_prints_the_table_and_draws_the_figure(sweep, tmp_path, ca
     with (tmp_path / "out" / "league.csv").open() as file:
         rows = list(csv.DictReader(file))
     assert len(rows) == 3 * 3 and {row["entry"] for row in rows} == {"se-trpo", "de-trpo", "se-moe-trpo"}
+
+
+def load_queue():
+    spec = importlib.util.spec_from_file_location("league_queue", ROOT / "benchmarks" / "league_queue.py")
+    queue = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = queue  # its dataclasses look their module up there
+    spec.loader.exec_module(queue)
+    return queue
+
+
+def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp_path):
+    queue = load_queue()
+    assert queue.parse_seeds("0-2,7") == [0, 1, 2, 7]
+    plan = yaml.safe_load(queue.PLAN.read_text())
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        for entry in plan.values():  # every entry of the plan composes
+            compose("config", overrides=list(entry["overrides"]))
+    runs = queue.plan_runs(plan, ["se-trpo", "se-moe-trpo"], [0, 1], tmp_path)
+    assert [(run.entry, run.seed) for run in runs] == [("se-trpo", 0), ("se-moe-trpo", 0), ("se-trpo", 1),
+                                                       ("se-moe-trpo", 1)]
+    fresh = runs[0].command("python")
+    assert "seed=0" in fresh and "epochs=600" in fresh and not any(part.startswith("resume=") for part in fresh)
+    assert runs[0].epochs_done() == 0
+    runs[0].folder.mkdir(parents=True)
+    torch.save({"epoch": 12}, runs[0].folder / "checkpoint.pt")
+    assert runs[0].epochs_done() == 12
+    assert runs[0].command("python")[-1] == f"resume={runs[0].folder / 'checkpoint.pt'}"
+    with pytest.raises(SystemExit, match="se-ppo"):
+        queue.plan_runs(plan, ["se-ppo"], [0], tmp_path)

@@ -1,6 +1,8 @@
 """SAC, CrossQ and REDQ as learners: each takes a correct step, moves its targets as configured,
 meets its entropy target, acts deterministically with tanh(loc), refuses bad settings by name,
-and a SAC run resumes exactly."""
+and a SAC run resumes exactly; on a world model (MBPO) the learner takes its earned steps on the
+model's branches, mixing real and model data at the configured share, and an MBPO run resumes
+exactly."""
 
 import subprocess
 import sys
@@ -13,6 +15,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.checkpoint import load_checkpoint
+from unipolicy_rl.collectors.real import IMAGINED, label
 from unipolicy_rl.factories import make_learner
 from unipolicy_rl.learners import Learner, OffPolicyLearner
 
@@ -97,11 +100,67 @@ def test_the_deterministic_action_is_the_tanh_of_the_mean():
         ("algo.updates_per_step=0.5", "algo.updates_per_step .* must be >= 1, got 0.5"),
         ("algo.batch_size=0", "algo.batch_size must be an integer >= 1, got 0"),
         ("algo.target_update_rate=null", "target_update_rate must be set for sac"),
+        ("algo.real_data_share=1.5", "algo.real_data_share must lie in \\[0, 1\\], got 1.5"),
+        ("algo.real_data_share=-0.1", "algo.real_data_share must lie in \\[0, 1\\], got -0.1"),
     ],
 )
 def test_bad_learner_settings_are_refused_by_name(override, match):
     with pytest.raises(ValueError, match=match):
         make_learner(config("sac", override), 3, 1)
+
+
+def mbpo_learner(*overrides: str) -> OffPolicyLearner:
+    cfg = config("sac", "source=moe", "imagination=mbpo", "algo.updates_per_step=2", *overrides)
+    return make_learner(cfg, 3, 1)
+
+
+def marked(data: TensorDict, mark: float) -> TensorDict:
+    data["observation"][:, 0] = mark
+    return data
+
+
+def test_mbpo_takes_the_steps_real_data_earned_when_the_models_branches_come():
+    torch.manual_seed(0)
+    learner = mbpo_learner()
+    assert learner.model_based
+    metrics = learner.update(transitions(50, 3, 1))  # real: stored, 2 x 50 steps earned, none taken yet
+    assert learner.gradient_steps == 0 and metrics["train/buffer_size"] == 50
+    metrics = learner.update(label(transitions(300, 3, 1, seed=1), IMAGINED))
+    assert learner.gradient_steps == 100
+    assert metrics["train/model_buffer_size"] == 300 and metrics["train/buffer_size"] == 50
+    assert "train/loss_critic" in metrics
+    learner.update(label(transitions(300, 3, 1, seed=2), IMAGINED))  # nothing earned since: data only
+    assert learner.gradient_steps == 100
+
+
+@pytest.mark.parametrize("share", [0.0, 0.25, 1.0])
+def test_an_mbpo_minibatch_draws_the_real_data_share_from_real_transitions(share):
+    torch.manual_seed(0)
+    learner = mbpo_learner(f"algo.real_data_share={share}", "algo.learning_starts=1000")  # no steps taken
+    learner.update(marked(transitions(100, 3, 1), 1.0))
+    learner.update(label(marked(transitions(100, 3, 1, seed=1), -1.0), IMAGINED))
+    minibatch = learner.sample_minibatch()
+    assert minibatch.batch_size == torch.Size([32])
+    assert int((minibatch["observation"][:, 0] == 1.0).sum()) == round(32 * share)
+    assert int((minibatch["observation"][:, 0] == -1.0).sum()) == 32 - round(32 * share)
+
+
+def test_a_model_free_learner_refuses_imagined_batches_by_name():
+    learner = make_learner(config("sac"), 3, 1)
+    with pytest.raises(ValueError, match="model_based=False"):
+        learner.update(label(transitions(10, 3, 1), IMAGINED))
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ("imagination=branch", "imagination.train_on_real=false"),
+        ("imagination.stopping.max_updates=3", "one imagined batch per model fit"),
+    ],
+)
+def test_an_imagination_mbpo_cannot_learn_from_is_refused_by_name(override, match):
+    with pytest.raises(ValueError, match=match):
+        make_learner(config("sac", "source=moe", "imagination=mbpo", override), 3, 1)
 
 
 def run_train(*overrides: str) -> subprocess.CompletedProcess:
@@ -129,3 +188,26 @@ def test_a_sac_run_resumes_exactly_and_refuses_bad_settings_at_start_up(tmp_path
     refused = run_train(*SAC_TINY, "algo.num_critics=0", "epochs=1", f"hydra.run.dir={tmp_path / 'bad'}")
     assert refused.returncode != 0 and "algo.num_critics must be an integer >= 1, got 0" in refused.stderr
     assert not (tmp_path / "bad" / "metrics.csv").exists()
+
+
+MBPO_TINY = [*SAC_TINY, "source=moe", "imagination=mbpo", "imagination.steps_per_batch=60",
+             "world_model.model.members=3", "world_model.model.elites=2", "world_model.model.hidden=[8]",
+             "world_model.trainer.max_epochs=2", "algo.model_buffer_capacity=500"]
+
+
+def test_an_mbpo_run_resumes_exactly(tmp_path):
+    straight = run_train(*MBPO_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
+    first = run_train(*MBPO_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
+    resumed = run_train(*MBPO_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    for result in (straight, first, resumed):
+        assert result.returncode == 0, result.stderr
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    assert a["learner"]["gradient_steps"] == b["learner"]["gradient_steps"] == 2 * 3 * 20
+    for key, value in a["learner"]["loss"].items():
+        assert torch.equal(value, b["learner"]["loss"][key]), f"{key} differs after resume"
+    for key, value in a["world_model"].items():
+        assert torch.equal(value, b["world_model"][key]), f"model {key} differs after resume"
+    refused = run_train(*SAC_TINY, "source=moe", "epochs=1", f"hydra.run.dir={tmp_path / 'bad'}")
+    assert refused.returncode != 0 and "imagination.train_on_real=false" in refused.stderr

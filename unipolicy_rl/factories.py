@@ -32,6 +32,7 @@ from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.config import env_kwargs
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
 from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
+from unipolicy_rl.learners.off_policy import check_model_based_imagination
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
 from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm, make_policy_actor
@@ -178,11 +179,15 @@ def off_policy_settings(cfg: DictConfig) -> OffPolicySettings:
 
 
 def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> OffPolicyLearner:
-    """SAC, CrossQ or REDQ from ``algo``: the tanh-Gaussian actor, TorchRL's loss, critics and replay buffer."""
+    """SAC, CrossQ or REDQ from ``algo``: the tanh-Gaussian actor, TorchRL's loss, critics and replay
+    buffer; on a model source, MBPO's (a model buffer beside the real one)."""
+    model_based = cfg.source.kind == "model"
+    if model_based:
+        check_model_based_imagination(instantiate(cfg.imagination))
     actor = make_policy_actor(cfg, observation_dim, action_dim)
     normalizer = make_observation_norm(observation_dim)
     return OffPolicyLearner(off_policy_settings(cfg), actor, normalizer, make_collecting_policy(normalizer, actor),
-                            ObservationStatistics(observation_dim), observation_dim, action_dim)
+                            ObservationStatistics(observation_dim), observation_dim, action_dim, model_based)
 
 
 # ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).

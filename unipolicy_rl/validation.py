@@ -170,6 +170,7 @@ def validate_config(cfg: DictConfig) -> None:
     from unipolicy_rl.collectors.imagination import check_stopping_rule
     from unipolicy_rl.envs import DesignDistribution
     from unipolicy_rl.factories import learner_settings, make_dynamics_model, resolve_device
+    from unipolicy_rl.learners.off_policy import check_model_based_imagination
 
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
@@ -186,6 +187,8 @@ def validate_config(cfg: DictConfig) -> None:
         model = _built("world_model.model",
                        lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
         check_stopping_rule(imagination.stopping, model)
+        if cfg.algo.name != "trpo":
+            check_model_based_imagination(imagination)
 
 
 def _get(cfg: DictConfig, key: str):

@@ -6,6 +6,12 @@ buffer that keeps every real transition the learner is given, ``updates_per_step
 steps per new transition (the update-to-data ratio, UTD), the observation normaliser of the
 project's policy (frozen within an epoch, refreshed between), and one state to checkpoint.
 
+On a world model the same learner is MBPO (Janner et al. 2019): a second replay buffer keeps the
+model's branches, and each minibatch draws ``real_data_share`` of its transitions from the real
+buffer, the rest from the model's. The gradient steps a real batch earns (UTD x its transitions)
+are then taken when the epoch's imagined batch arrives, so they see the branches of the model
+fitted on that real data, as MBPO's steps follow its rollouts.
+
 Transitions are stored with their raw observations and normalised when a minibatch is drawn,
 with the current statistics: an old transition is seen the way the current policy would see it.
 A refresh therefore only moves the normaliser (there is no first layer to re-express once the
@@ -59,6 +65,10 @@ class OffPolicySettings:
         batch_renorm: batch renormalisation in the critics (CrossQ).
         alpha_init: the entropy temperature's start; it is learned towards ``target_entropy``.
         target_entropy: the policy's entropy target (``auto``: minus the number of actions).
+        real_data_share: model-based runs (MBPO): the share of each minibatch drawn from real
+            transitions, the rest from the model's branches (MBPO: 0.05).
+        model_buffer_capacity: model-based runs: imagined transitions kept (FIFO; MBPO keeps
+            about one epoch's branches, so the model data follow the latest model).
     """
 
     loss: str = "sac"
@@ -78,11 +88,14 @@ class OffPolicySettings:
     batch_renorm: bool = False
     alpha_init: float = 1.0
     target_entropy: float | str = "auto"
+    real_data_share: float = 0.05
+    model_buffer_capacity: int = 100_000
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"algo.loss must be one of {LOSSES}, got {self.loss!r}")
-        for name in ("batch_size", "buffer_capacity", "num_critics", "sampled_critics", "actor_update_every"):
+        for name in ("batch_size", "buffer_capacity", "model_buffer_capacity", "num_critics", "sampled_critics",
+                     "actor_update_every"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"algo.{name} must be an integer >= 1, got {value!r}")
@@ -105,8 +118,31 @@ class OffPolicySettings:
             raise ValueError("algo.target_update_rate must be null for crossq: CrossQ has no target network")
         if self.loss != "crossq" and self.target_update_rate is None:
             raise ValueError(f"algo.target_update_rate must be set for {self.loss}: its critics' targets need one")
+        if isinstance(self.real_data_share, bool) or not (isinstance(self.real_data_share, (int, float))
+                                                          and 0 <= self.real_data_share <= 1):
+            raise ValueError(f"algo.real_data_share must lie in [0, 1], got {self.real_data_share!r}")
         if not (self.target_entropy == "auto" or isinstance(self.target_entropy, (int, float))):
             raise ValueError(f"algo.target_entropy must be 'auto' or a number, got {self.target_entropy!r}")
+
+
+def check_model_based_imagination(imagination) -> None:
+    """Refuses, by name, an imagination an off-policy learner cannot learn MBPO's way from.
+
+    The learner earns its gradient steps from real batches (``imagination.train_on_real``) and
+    takes them on the one imagined batch that follows each fit (``stopping.kind=fixed``,
+    ``max_updates=1``): ``imagination=mbpo`` is such a group. ``imagination`` is an
+    :class:`~unipolicy_rl.collectors.ImaginationSettings`.
+    """
+    if not imagination.train_on_real:
+        raise ValueError("imagination.train_on_real=false, but an off-policy learner on a world model (MBPO) needs "
+                         "the real batches: they fill its real buffer and earn its gradient steps; use "
+                         "imagination=mbpo")
+    stopping = imagination.stopping
+    if stopping.kind != "fixed" or stopping.max_updates != 1:
+        raise ValueError(f"imagination.stopping (kind={stopping.kind!r}, max_updates={stopping.max_updates!r}): an "
+                         f"off-policy learner on a world model takes one imagined batch per model fit "
+                         f"(kind=fixed, max_updates=1; its size is imagination.steps_per_batch); use "
+                         f"imagination=mbpo")
 
 
 def make_loss(settings: OffPolicySettings, actor: TensorDictModuleBase, observation_dim: int,
@@ -137,13 +173,18 @@ class OffPolicyLearner:
         policy: the collecting policy, ``normalizer`` then ``actor``.
         statistics: the observation statistics the normaliser is refreshed from.
         observation_dim, action_dim: the env's sizes.
+        model_based: learn MBPO's way: real batches are stored and earn gradient steps, imagined
+            batches fill the model buffer and the earned steps are taken then, on minibatches
+            that mix real and model transitions (``settings.real_data_share``). Otherwise only
+            real batches come, and each pays its steps at once.
     """
 
     def __init__(self, settings: OffPolicySettings, actor: TensorDictModuleBase, normalizer: ObservationNorm,
                  policy: TensorDictModuleBase, statistics: ObservationStatistics, observation_dim: int,
-                 action_dim: int) -> None:
+                 action_dim: int, model_based: bool = False) -> None:
         self.settings = settings
         self.actor, self.normalizer, self.policy, self.statistics = actor, normalizer, policy, statistics
+        self.model_based = model_based
         self.loss = make_loss(settings, actor, observation_dim, action_dim)
         betas = tuple(settings.adam_betas)
         self.actor_optimizer = torch.optim.Adam(self.loss.actor_network_params.flatten_keys().values(),
@@ -153,21 +194,27 @@ class OffPolicyLearner:
         self.alpha_optimizer = torch.optim.Adam([self.loss.log_alpha], lr=settings.learning_rate, betas=betas)
         self.target_update = (None if settings.target_update_rate is None
                               else SoftUpdate(self.loss, tau=settings.target_update_rate))
-        self.buffer = ReplayBuffer(storage=LazyTensorStorage(settings.buffer_capacity),
-                                   batch_size=settings.batch_size)
+        self.buffer = ReplayBuffer(storage=LazyTensorStorage(settings.buffer_capacity))
+        self.model_buffer = (ReplayBuffer(storage=LazyTensorStorage(settings.model_buffer_capacity))
+                             if model_based else None)
         self.batch_keys = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                            ("next", "terminated"))
         self.gradient_steps = 0
-        self.owed_steps = 0.0  # fractional gradient steps carried to the next batch (UTD not an integer)
+        self.owed_steps = 0.0  # earned gradient steps not taken yet (a fraction, or MBPO's until model data come)
 
     # -- the Learner interface --------------------------------------------------------------
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        if is_imagined(batch):
-            raise NotImplementedError("off-policy learners take real batches only so far: model data (MBPO) need "
-                                      "their own buffer and real-data share")
         new = batch.reshape(-1).select(*self.batch_keys).clone()
-        self.buffer.extend(new)
-        self.owed_steps += self.settings.updates_per_step * new.numel()
+        if is_imagined(batch):
+            if self.model_buffer is None:
+                raise ValueError("this off-policy learner was built for real data only (model_based=False) and "
+                                 "was given an imagined batch: build it with model_based=True (MBPO)")
+            self.model_buffer.extend(new)
+        else:
+            self.buffer.extend(new)
+            self.owed_steps += self.settings.updates_per_step * new.numel()
+            if self.model_based:  # the steps wait for the model's branches of this epoch
+                return self._progress()
         steps = int(self.owed_steps)
         self.owed_steps -= steps
         if len(self.buffer) < max(self.settings.learning_starts, 1):
@@ -180,10 +227,25 @@ class OffPolicyLearner:
         return {**metrics, **self._progress()}
 
     def _progress(self) -> dict[str, float]:
-        return {"train/gradient_steps": float(self.gradient_steps), "train/buffer_size": float(len(self.buffer))}
+        progress = {"train/gradient_steps": float(self.gradient_steps), "train/buffer_size": float(len(self.buffer))}
+        if self.model_buffer is not None:
+            progress["train/model_buffer_size"] = float(len(self.model_buffer))
+        return progress
+
+    def sample_minibatch(self) -> TensorDictBase:
+        """``batch_size`` transitions: real ones only, or (MBPO) ``real_data_share`` of them real
+        and the rest from the model buffer."""
+        size = self.settings.batch_size
+        if self.model_buffer is None or len(self.model_buffer) == 0:
+            return self.buffer.sample(size)
+        real = int(round(size * self.settings.real_data_share))
+        parts = [self.buffer.sample(real)] if real else []
+        if real < size:
+            parts.append(self.model_buffer.sample(size - real))
+        return torch.cat(parts) if len(parts) > 1 else parts[0]
 
     def _gradient_step(self) -> dict[str, float]:
-        sample = self.buffer.sample()
+        sample = self.sample_minibatch()
         self.normalizer(sample)
         self.normalizer(sample["next"])
         losses = self.loss(sample)
@@ -228,6 +290,7 @@ class OffPolicyLearner:
             "alpha_optimizer": self.alpha_optimizer.state_dict(),
             "observation_statistics": self.statistics.state_dict(),
             "buffer": self.buffer.state_dict(),
+            **({"model_buffer": self.model_buffer.state_dict()} if self.model_buffer is not None else {}),
             "gradient_steps": self.gradient_steps,
             "owed_steps": self.owed_steps,
         }
@@ -240,5 +303,7 @@ class OffPolicyLearner:
         self.statistics.load_state_dict(state["observation_statistics"])
         self.statistics.copy_to(self.normalizer)
         self.buffer.load_state_dict(state["buffer"])
+        if self.model_buffer is not None:
+            self.model_buffer.load_state_dict(state["model_buffer"])
         self.gradient_steps = int(state["gradient_steps"])
         self.owed_steps = float(state["owed_steps"])

@@ -1,0 +1,182 @@
+"""Runs the league's trainings as a background queue: a frozen commit, two runs at a time, resumable.
+
+    git worktree add ../league <commit>          # the code the study measures, frozen
+    nohup python benchmarks/league_queue.py --code ../league --runs ../league_runs \\
+        --entries se-trpo,se-moe-trpo --seeds 0-4 > ../league_runs/queue.log 2>&1 &
+    python benchmarks/league.py ../league_runs/*  # the table, whenever
+
+Each run is ``<runs>/<entry>/seed<k>``, trained by ``<code>/train.py`` with the entry's overrides
+from ``benchmarks/league_plan.yaml``, its seed, its budget (``epochs``), ``checkpoint_every=5``
+and no progress bar. Runs go seed by seed (every entry's seed 0, then seed 1, ...), so a queue
+cut short leaves every entry with the same seeds. A run whose folder holds a checkpoint resumes
+from it with the same overrides; one whose checkpoint has reached its budget is skipped. Every
+command goes into the run's ``commands.txt`` beside the commit it ran, its output into
+``train.log``. Stopping the queue (SIGTERM, Ctrl-C) stops its runs at their epoch's end, each
+saving a checkpoint the next queue resumes from.
+
+The runs are niced (``--nice``) so that work in the foreground keeps the cores it asks for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import yaml
+
+PLAN = Path(__file__).with_name("league_plan.yaml")
+CHECKPOINT = "checkpoint.pt"
+FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
+
+
+@dataclass(frozen=True)
+class Run:
+    entry: str
+    seed: int
+    overrides: tuple[str, ...]
+    epochs: int
+    folder: Path
+
+    def command(self, python: str) -> list[str]:
+        command = [python, "train.py", *self.overrides, f"seed={self.seed}", f"epochs={self.epochs}",
+                   *FIXED_OVERRIDES, f"hydra.run.dir={self.folder}"]
+        checkpoint = self.folder / CHECKPOINT
+        return command + [f"resume={checkpoint}"] if checkpoint.is_file() else command
+
+    def epochs_done(self) -> int:
+        checkpoint = self.folder / CHECKPOINT
+        if not checkpoint.is_file():
+            return 0
+        return int(torch.load(checkpoint, map_location="cpu", weights_only=False)["epoch"])
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``0-4`` or ``0,2,5`` (or both: ``0-2,7``)."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        try:
+            seeds.extend(range(int(first), int(last or first) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"--seeds: {part!r} is neither a seed nor a range like 0-4") from None
+    return seeds
+
+
+def frozen_commit(code: Path) -> str:
+    """The commit checked out at ``code``; refuses a tree with uncommitted changes (its runs would
+    measure code no commit names)."""
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=code,
+                            capture_output=True, text=True, check=True).stdout
+    if status.strip():
+        raise SystemExit(f"error: {code} has uncommitted changes; run the league from a clean worktree of one "
+                         f"commit:\n{status}")
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=code, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def plan_runs(plan: dict, entries: list[str], seeds: list[int], runs: Path) -> list[Run]:
+    unknown = [entry for entry in entries if entry not in plan]
+    if unknown:
+        raise SystemExit(f"error: entries {unknown} are not in the plan; it has {sorted(plan)}")
+    return [Run(entry, seed, tuple(plan[entry]["overrides"]), int(plan[entry]["epochs"]),
+                runs.resolve() / entry / f"seed{seed}")
+            for seed in seeds for entry in entries]
+
+
+class Queue:
+    """At most ``jobs`` runs at once; a stop request is passed on to the running ones."""
+
+    def __init__(self, code: Path, commit: str, jobs: int, nice: int) -> None:
+        self.code, self.commit, self.jobs, self.nice = code, commit, jobs, nice
+        self.running: dict[subprocess.Popen, Run] = {}
+        self.stopping = False
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(signum, self._stop)
+
+    def _stop(self, signum, frame) -> None:
+        self.stopping = True
+        print(f"queue: stopping {len(self.running)} run(s) at their epoch's end", flush=True)
+        for process in self.running:
+            process.send_signal(signal.SIGTERM)
+
+    def start(self, run: Run) -> None:
+        run.folder.mkdir(parents=True, exist_ok=True)
+        command = run.command(sys.executable)
+        stamp = datetime.datetime.now().isoformat(timespec="seconds")
+        with open(run.folder / "commands.txt", "a") as record:
+            record.write(f"{stamp} commit {self.commit} (cd {self.code}): {' '.join(command[1:])}\n")
+        log = open(run.folder / "train.log", "a")
+        environment = {**os.environ, "PYTHONPATH": str(self.code)}
+        process = subprocess.Popen(command, cwd=self.code, stdout=log, stderr=subprocess.STDOUT, env=environment,
+                                   preexec_fn=lambda: os.nice(self.nice))
+        self.running[process] = run
+        print(f"{stamp} started {run.entry} seed {run.seed}: {' '.join(command[1:])}", flush=True)
+
+    def wait_for_slot(self) -> None:
+        while len(self.running) >= self.jobs:
+            self._reap()
+            time.sleep(5)
+
+    def _reap(self) -> None:
+        for process, run in list(self.running.items()):
+            code = process.poll()
+            if code is not None:
+                del self.running[process]
+                stamp = datetime.datetime.now().isoformat(timespec="seconds")
+                print(f"{stamp} {run.entry} seed {run.seed} exited with {code} (log: {run.folder / 'train.log'})",
+                      flush=True)
+
+    def drain(self) -> None:
+        while self.running:
+            self._reap()
+            time.sleep(5)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--code", type=Path, required=True, help="a worktree of the frozen commit to run")
+    parser.add_argument("--runs", type=Path, required=True, help="where the runs go (<runs>/<entry>/seed<k>)")
+    parser.add_argument("--entries", required=True, help="comma-separated entries of the plan")
+    parser.add_argument("--seeds", type=parse_seeds, default=parse_seeds("0-4"), help="e.g. 0-4 or 0,3 (0-4)")
+    parser.add_argument("--plan", type=Path, default=PLAN, help=f"entries and budgets ({PLAN.name})")
+    parser.add_argument("--jobs", type=int, default=2, help="runs at once (2: one per core here)")
+    parser.add_argument("--nice", type=int, default=10, help="niceness of the runs (10)")
+    parser.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
+    args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
+
+    code = args.code.resolve()
+    if not (code / "train.py").is_file():
+        parser.error(f"--code {code} holds no train.py")
+    commit = frozen_commit(code)
+    runs = plan_runs(yaml.safe_load(args.plan.read_text()), args.entries.split(","), args.seeds, args.runs)
+    queue = Queue(code, commit, args.jobs, args.nice)
+    print(f"queue: {len(runs)} run(s) of commit {commit} from {code}, {args.jobs} at a time", flush=True)
+    for run in runs:
+        if queue.stopping:
+            break
+        done = run.epochs_done()
+        if done >= run.epochs:
+            print(f"{run.entry} seed {run.seed}: done ({done} of {run.epochs} epochs)", flush=True)
+            continue
+        if args.dry_run:
+            print(" ".join(run.command(sys.executable)[1:]))
+            continue
+        queue.wait_for_slot()
+        if not queue.stopping:
+            queue.start(run)
+    queue.drain()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
