@@ -110,6 +110,20 @@ def test_gaussian_ensemble_fits_a_known_dynamics_and_its_members_differ():
     assert torch.equal(model.predict(*args, deterministic=True), model.predict(*args, deterministic=True))
 
 
+def test_a_fit_budgeted_in_steps_stops_there_and_a_warm_model_keeps_improving_fit_after_fit():
+    """max_steps caps a fit's gradient steps (mid-epoch); the weights carry over, so short fits add up."""
+    torch.manual_seed(0)
+    model = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(32, 32))
+    data = toy_transitions(4000, 0)  # 3,200 training samples: 13 steps of 256 per epoch
+    trainer = ModelTrainer(max_epochs=40, max_steps=20, batch_size=256)
+    errors = []
+    for fit in range(4):
+        report = trainer.fit(model, data, torch.Generator().manual_seed(fit))
+        assert report.extras["fit_steps"] == 20 and report.epochs == 2  # 13 steps, then 7 of the second epoch
+        errors.append(float(report.validation_error.min()))
+    assert errors[-1] < 0.5 * errors[0], errors
+
+
 def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
     torch.manual_seed(0)
     model = CellEnsemble(TOY, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6), divisions=2,
@@ -140,6 +154,7 @@ def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
         (lambda: StoppingRule(max_updates=0), "max_updates"),
         (lambda: ImaginationSettings(rollout="dream"), "rollout"),
         (lambda: ModelTrainer(patience=0), "patience"),
+        (lambda: ModelTrainer(max_steps=0), "max_steps must be a positive integer or None, got 0"),
     ],
 )
 def test_bad_model_settings_name_the_value(factory, match):

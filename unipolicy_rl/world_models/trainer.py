@@ -88,6 +88,10 @@ class ModelTrainer:
             from the previous fit), so a checkpoint needs no optimiser state.
         batch_size: samples per member per step.
         max_epochs: upper bound on passes over the training data per fit.
+        max_steps: upper bound on gradient steps per fit (None: whole epochs only). The weights
+            carry over between fits, so a fit has only the latest epoch's transitions to take in:
+            a budget in steps keeps its time flat as the buffer grows, where a budget in passes
+            over the buffer grows with it (docs/results.md, "The league").
         patience: stop after this many epochs in which no member improved its validation
             error by more than ``min_improvement`` (relative).
         validation_fraction: share of the transitions held out (thesis: 80/20).
@@ -101,6 +105,7 @@ class ModelTrainer:
     learning_rate: float = 1e-3
     batch_size: int = 256
     max_epochs: int = 30
+    max_steps: int | None = None
     patience: int = 3
     min_improvement: float = 0.01
     validation_fraction: float = 0.2
@@ -115,6 +120,8 @@ class ModelTrainer:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.max_steps is not None and not (isinstance(self.max_steps, int) and self.max_steps >= 1):
+            raise ValueError(f"max_steps must be a positive integer or None, got {self.max_steps!r}")
         check_validation_fraction(self.validation_fraction)
         if not self.weight_decay >= 0:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
@@ -152,17 +159,23 @@ class ModelTrainer:
         best_error = torch.full((model.members,), math.inf, device=device)
         epochs_without_improvement = 0
         epochs_run = 0
+        steps_left = math.inf if self.max_steps is None else self.max_steps
+        steps = 0
         train_loss = math.nan
         for epochs_run in range(1, self.max_epochs + 1):  # noqa: B007 (the count is reported)
             index = _epoch_order(train_sets, generator).to(device)
             losses = []
             for chunk in index.split(self.batch_size, dim=1):
+                if steps_left <= 0:
+                    break
                 per_sample = model.training_loss(x[chunk], y[chunk])  # [members, batch]
                 loss = (per_sample.mean(1) * has_data).sum() + model.regularization()
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
                 losses.append(loss.detach())
+                steps_left -= 1
+                steps += 1
             train_loss = float(torch.stack(losses).mean()) / max(int(has_data.sum()), 1)
             error = _masked_mean(model.validation_error(x[validation_index], y[validation_index]), validation_mask)
             improved = error < best_error - self.min_improvement * best_error.abs()
@@ -177,12 +190,14 @@ class ModelTrainer:
                 epochs_without_improvement += 1
                 if epochs_without_improvement >= self.patience:
                     break
+            if steps_left <= 0:
+                break
         with torch.no_grad():
             for kept, parameter in zip(best_weights, member_parameters, strict=True):
                 parameter.copy_(kept)
         model.set_elites(best_error)
         return FitReport(epochs_run, train_loss, best_error.cpu(), model.elite_members, int((~has_data).sum()),
-                         time.perf_counter() - started)
+                         time.perf_counter() - started, extras={"fit_steps": float(steps)})
 
 
 class ClosedFormModel(Protocol):
