@@ -211,3 +211,12 @@ def test_an_mbpo_run_resumes_exactly(tmp_path):
         assert torch.equal(value, b["world_model"][key]), f"model {key} differs after resume"
     refused = run_train(*SAC_TINY, "source=moe", "epochs=1", f"hydra.run.dir={tmp_path / 'bad'}")
     assert refused.returncode != 0 and "imagination.train_on_real=false" in refused.stderr
+
+
+def test_mbpo_runs_on_the_polynomial_chaos_world_model_too(tmp_path):
+    run = run_train(*SAC_TINY, "source=pce", "imagination=mbpo", "imagination.steps_per_batch=60", "epochs=2",
+                    f"hydra.run.dir={tmp_path}")
+    assert run.returncode == 0, run.stderr
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["learner"]["gradient_steps"] == 2 * 2 * 20  # UTD 2 x 20 real steps, per epoch
+    assert state["config"]["world_model"]["model"]["_target_"].endswith("PCEDynamics")
