@@ -124,6 +124,24 @@ def test_a_fit_budgeted_in_steps_stops_there_and_a_warm_model_keeps_improving_fi
     assert errors[-1] < 0.5 * errors[0], errors
 
 
+def test_checks_every_few_steps_end_a_warm_fit_early_however_large_the_data():
+    """A model already fitted has little to learn from the same data: checked once per epoch it
+    still runs patience + 1 epochs; checked every few steps it stops after as many checks."""
+    torch.manual_seed(0)
+    model = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(32, 32))
+    data = toy_transitions(4000, 0)  # 13 steps of 256 per epoch
+    ModelTrainer(max_epochs=40, patience=5).fit(model, data, torch.Generator().manual_seed(0))
+    warm = model.state_dict()
+    per_epoch = ModelTrainer(max_epochs=40, patience=2, min_improvement=0.05).fit(
+        model, data, torch.Generator().manual_seed(1))
+    model.load_state_dict(warm)
+    per_steps = ModelTrainer(max_epochs=40, patience=2, min_improvement=0.05, check_every=3).fit(
+        model, data, torch.Generator().manual_seed(1))
+    assert per_epoch.extras["fit_steps"] == 13 * per_epoch.epochs >= 13 * 3, per_epoch
+    assert per_steps.extras["fit_steps"] < 0.5 * per_epoch.extras["fit_steps"], (per_steps, per_epoch)
+    assert per_steps.extras["fit_steps"] % 3 == 0  # it stopped at a check
+
+
 def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
     torch.manual_seed(0)
     model = CellEnsemble(TOY, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6), divisions=2,
@@ -155,6 +173,7 @@ def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
         (lambda: ImaginationSettings(rollout="dream"), "rollout"),
         (lambda: ModelTrainer(patience=0), "patience"),
         (lambda: ModelTrainer(max_steps=0), "max_steps must be a positive integer or None, got 0"),
+        (lambda: ModelTrainer(check_every=0), "check_every must be a positive integer or None, got 0"),
     ],
 )
 def test_bad_model_settings_name_the_value(factory, match):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -92,7 +92,11 @@ class ModelTrainer:
             carry over between fits, so a fit has only the latest epoch's transitions to take in:
             a budget in steps keeps its time flat as the buffer grows, where a budget in passes
             over the buffer grows with it (docs/results.md, "The league").
-        patience: stop after this many epochs in which no member improved its validation
+        check_every: gradient steps between validation checks (None: one check per epoch).
+            Early stopping then counts checks, not epochs: a warm model that has little new to
+            learn stops after ``patience`` checks, however large the buffer, while a fit with
+            much to learn goes on.
+        patience: stop after this many checks in which no member improved its validation
             error by more than ``min_improvement`` (relative).
         validation_fraction: share of the transitions held out (thesis: 80/20).
         weight_decay: Adam's L2 penalty.
@@ -106,6 +110,7 @@ class ModelTrainer:
     batch_size: int = 256
     max_epochs: int = 30
     max_steps: int | None = None
+    check_every: int | None = None
     patience: int = 3
     min_improvement: float = 0.01
     validation_fraction: float = 0.2
@@ -120,8 +125,10 @@ class ModelTrainer:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.max_steps is not None and not (isinstance(self.max_steps, int) and self.max_steps >= 1):
-            raise ValueError(f"max_steps must be a positive integer or None, got {self.max_steps!r}")
+        for name in ("max_steps", "check_every"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
         check_validation_fraction(self.validation_fraction)
         if not self.weight_decay >= 0:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay!r}")
@@ -157,26 +164,27 @@ class ModelTrainer:
         member_parameters = model.member_parameters()
         best_weights = [p.detach().clone() for p in member_parameters]
         best_error = torch.full((model.members,), math.inf, device=device)
-        epochs_without_improvement = 0
-        epochs_run = 0
-        steps_left = math.inf if self.max_steps is None else self.max_steps
-        steps = 0
+        checks_without_improvement = 0
+        epochs_run = steps = 0
         train_loss = math.nan
-        for epochs_run in range(1, self.max_epochs + 1):  # noqa: B007 (the count is reported)
-            index = _epoch_order(train_sets, generator).to(device)
-            losses = []
-            for chunk in index.split(self.batch_size, dim=1):
-                if steps_left <= 0:
-                    break
-                per_sample = model.training_loss(x[chunk], y[chunk])  # [members, batch]
-                loss = (per_sample.mean(1) * has_data).sum() + model.regularization()
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                losses.append(loss.detach())
-                steps_left -= 1
-                steps += 1
+        losses: list[torch.Tensor] = []
+        budget = math.inf if self.max_steps is None else self.max_steps
+        minibatches = _minibatches(train_sets, self.batch_size, self.max_epochs, generator)
+        for epochs_run, chunk, epoch_end in minibatches:  # noqa: B007 (the count is reported)
+            chunk = chunk.to(device)
+            per_sample = model.training_loss(x[chunk], y[chunk])  # [members, batch]
+            loss = (per_sample.mean(1) * has_data).sum() + model.regularization()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.detach())
+            steps += 1
+            out_of_steps = steps >= budget or (epoch_end and epochs_run == self.max_epochs)
+            if not (out_of_steps or (epoch_end if self.check_every is None else steps % self.check_every == 0)):
+                continue
+            # ---- a check: each member's validation error; the best weights so far are kept
             train_loss = float(torch.stack(losses).mean()) / max(int(has_data.sum()), 1)
+            losses = []
             error = _masked_mean(model.validation_error(x[validation_index], y[validation_index]), validation_mask)
             improved = error < best_error - self.min_improvement * best_error.abs()
             improved |= torch.isinf(best_error) & torch.isfinite(error)
@@ -185,12 +193,10 @@ class ModelTrainer:
                 with torch.no_grad():
                     for kept, parameter in zip(best_weights, member_parameters, strict=True):
                         kept[improved] = parameter[improved]
-                epochs_without_improvement = 0
+                checks_without_improvement = 0
             else:
-                epochs_without_improvement += 1
-                if epochs_without_improvement >= self.patience:
-                    break
-            if steps_left <= 0:
+                checks_without_improvement += 1
+            if out_of_steps or checks_without_improvement >= self.patience:
                 break
         with torch.no_grad():
             for kept, parameter in zip(best_weights, member_parameters, strict=True):
@@ -198,6 +204,16 @@ class ModelTrainer:
         model.set_elites(best_error)
         return FitReport(epochs_run, train_loss, best_error.cpu(), model.elite_members, int((~has_data).sum()),
                          time.perf_counter() - started, extras={"fit_steps": float(steps)})
+
+
+def _minibatches(train_sets: list[torch.Tensor], batch_size: int, epochs: int,
+                 generator: torch.Generator | None) -> Iterator[tuple[int, torch.Tensor, bool]]:
+    """``(epoch, index [members, batch], last of its epoch)`` for up to ``epochs`` passes, each
+    in its own order (drawn when the pass starts)."""
+    for epoch in range(1, epochs + 1):
+        chunks = _epoch_order(train_sets, generator).split(batch_size, dim=1)
+        for number, chunk in enumerate(chunks, start=1):
+            yield epoch, chunk, number == len(chunks)
 
 
 class ClosedFormModel(Protocol):
