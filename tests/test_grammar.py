@@ -217,7 +217,7 @@ def test_segment_distances_agree_with_a_dense_search():
 
 def test_the_thesis_robot_stands_on_four_feet():
     rest = stance(vertebrate())
-    assert rest.stands() and rest.failure is None
+    assert rest.stands() and rest.failure() is None
     assert len(rest.support) == 4
     assert rest.support_margin == pytest.approx(0.175)  # the feet span one link length either side of the CoM
 
@@ -237,7 +237,7 @@ TIPPING = Morphology(((LimbLink("make_acute_lift_limb_joint", "make_normal_limb_
 ])
 def test_robots_that_do_not_stand_say_why(morphology, failure):
     robot = describe(morphology.derivation())
-    assert stance(robot).failure == failure
+    assert stance(robot).failure() == failure
     assert not stands(robot)
 
 

@@ -91,14 +91,13 @@ class Stance:
     def stands(self, margin: float = SUPPORT_MARGIN) -> bool:
         return not self.collisions and self.support_margin >= margin
 
-    @property
-    def failure(self) -> str | None:
+    def failure(self, margin: float = SUPPORT_MARGIN) -> str | None:
         """Why the robot does not stand (None when it does), for reports."""
         if self.collisions:
             return f"self-collision {self.collisions[0]}"
         if not math.isfinite(self.support_margin):
             return "rests on a point or a line"
-        if self.support_margin < SUPPORT_MARGIN:
+        if self.support_margin < margin:
             return f"centre of mass {self.support_margin:+.3f} m from the support edge"
         return None
 
