@@ -38,7 +38,7 @@ from unipolicy_rl.robots.grammar import (
     split_morphologies,
     stance,
 )
-from unipolicy_rl.robots.kinematics import rest_segments
+from unipolicy_rl.robots.kinematics import rest_height
 
 LIMITS = SizeLimits(segments=(2, 5), leg_pairs=(1, 3), limb_links=(1, 3))
 
@@ -63,9 +63,7 @@ def reason(failure: str | None) -> str:
 def holds_rest(description, physics: PhysicsSettings, seconds: float = 2.0) -> bool:
     """Whether the robot, dropped from 2 mm above its rest height with every hinge held at zero,
     keeps its base's orientation within 10 degrees and its height within 2 cm."""
-    starts, ends = rest_segments(description)
-    radii = np.array([link.radius for link in description.links])
-    height = -min((starts[:, 2] - radii).min(), (ends[:, 2] - radii).min()) + 0.002
+    height = rest_height(description) + 0.002
     client = pybullet.connect(pybullet.DIRECT)
     try:
         pybullet.setPhysicsEngineParameter(fixedTimeStep=physics.time_step, physicsClientId=client)

@@ -8,7 +8,7 @@ import numpy as np
 import pybullet
 import pytest
 
-from unipolicy_rl.robots import DEFAULT_ACTUATED, load_robot, vertebrate
+from unipolicy_rl.robots import DEFAULT_ACTUATED, load_robot, standing_height, vertebrate
 from unipolicy_rl.robots.grammar import (
     RULES,
     VERTEBRATE,
@@ -30,7 +30,7 @@ from unipolicy_rl.robots.grammar import (
 from unipolicy_rl.robots.grammar.derivation import RobotGraph
 from unipolicy_rl.robots.grammar.morphology import LIMB_JOINT_RULES
 from unipolicy_rl.robots.grammar.standing import segment_distances
-from unipolicy_rl.robots.kinematics import rest_frames, rest_segments, rpy_matrix
+from unipolicy_rl.robots.kinematics import rest_frames, rest_height, rest_segments, rpy_matrix
 
 THESIS_LEG = VERTEBRATE.limbs[0]
 ACUTE_KNEE_LEG = (THESIS_LEG[0], dataclasses.replace(THESIS_LEG[1], joint="make_acute_lift_limb_joint"))
@@ -213,6 +213,12 @@ def test_segment_distances_agree_with_a_dense_search():
     for (p0, p1, q0, q1), distance in zip(points, distances, strict=True):
         dense = np.linalg.norm((p0 + u * (p1 - p0))[:, None] - (q0 + u * (q1 - q0))[None], axis=2).min()
         assert distance <= dense + 1e-9 and dense - distance < 2e-2
+
+
+@pytest.mark.parametrize("knee_angle_deg", [60.0, 120.0])
+def test_rest_height_is_the_thesis_robots_standing_height(knee_angle_deg):
+    robot = vertebrate(0.16, 0.5, knee_angle_deg=knee_angle_deg)
+    assert rest_height(robot) == pytest.approx(standing_height(robot), abs=1e-12)
 
 
 def test_the_thesis_robot_stands_on_four_feet():

@@ -42,3 +42,11 @@ def rest_segments(description: RobotDescription) -> tuple[np.ndarray, np.ndarray
     origins, rotations = rest_frames(description)
     lengths = np.array([link.length for link in description.links])
     return origins, origins + rotations[:, :, 0] * lengths[:, None]
+
+
+def rest_height(description: RobotDescription) -> float:
+    """Height of the base's frame at which the robot at rest just touches the ground: minus the
+    lowest point of any capsule (the base's frame is turned about z only, so heights are kept)."""
+    starts, ends = rest_segments(description)
+    radii = np.array([link.radius for link in description.links])
+    return float(-(np.minimum(starts[:, 2], ends[:, 2]) - radii).min())

@@ -157,17 +157,21 @@ def apply_rule(graph: RobotGraph, name: str) -> None:
     node_ids: dict[str, int] = {}
     right_names = {spec.name for spec in chosen.right_nodes}
     for spec in chosen.right_nodes:
-        node_id = matched_nodes[spec.name] if spec.name in matched_nodes else graph.new_id()
-        if spec.name not in matched_nodes:
-            graph.nodes[node_id] = GraphNode()
-        if spec.label is not None or spec.link is not None:
+        if spec.name in matched_nodes:
+            node_id = matched_nodes[spec.name]
+            if spec.label is not None or spec.link is not None:  # else the node stays as it was
+                graph.nodes[node_id] = GraphNode(spec.label, spec.link)
+        else:
+            node_id = graph.new_id()
             graph.nodes[node_id] = GraphNode(spec.label, spec.link)
         node_ids[spec.name] = node_id
 
+    # An edge with the same id on both sides is kept (its place among its parent's edges too),
+    # moved to the right side's ends; the other left edges go, the other right edges are new.
     kept = {spec.id: spec for spec in chosen.right_edges if spec.id is not None}
     for spec, edge_id in zip(chosen.left_edges, matched_edges, strict=True):
         if spec.id in kept:
-            new = kept[spec.id]
+            new = kept.pop(spec.id)
             edge = dataclasses.replace(graph.edges[edge_id], parent=node_ids[new.parent], child=node_ids[new.child])
             if new.label is not None or new.joint is not None:
                 edge = dataclasses.replace(edge, label=new.label, joint=new.joint)
@@ -175,7 +179,7 @@ def apply_rule(graph: RobotGraph, name: str) -> None:
         else:
             del graph.edges[edge_id]
     for spec in chosen.right_edges:
-        if spec.id is None or spec.id not in {left.id for left in chosen.left_edges}:
+        if spec.id is None or spec.id in kept:
             graph.edges[graph.new_id()] = GraphEdge(node_ids[spec.parent], node_ids[spec.child], spec.label,
                                                     spec.joint, spec.mirror)
 

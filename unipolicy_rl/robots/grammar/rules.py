@@ -156,7 +156,8 @@ ROBOGRAMMAR_RULES: tuple[Rule, ...] = (
 # joints first turn the limb 90 degrees to lie along the body). With it the thesis robot is a
 # derivation: unipolicy_rl.robots.vertebrate builds the same robot by hand.
 THESIS_RULES: tuple[Rule, ...] = (
-    _make_joint("make_axial_roll_limb_joint", "limb_joint", robogrammar_joint("axial_roll", "hinge")),
+    _make_joint("make_axial_roll_limb_joint", "limb_joint",
+                robogrammar_joint("axial_roll", "hinge", joint_axis=(1, 0, 0))),
 )
 
 RULES: dict[str, Rule] = {rule.name: rule for rule in (*ROBOGRAMMAR_RULES, *THESIS_RULES)}

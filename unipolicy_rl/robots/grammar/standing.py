@@ -79,7 +79,7 @@ def _convex_hull(points: np.ndarray) -> np.ndarray:
     return np.array(half(unique) + half(reversed(unique)))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Stance:
     """How a robot rests: its self-collisions, its support polygon and its centre of mass on the ground."""
 
