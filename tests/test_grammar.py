@@ -147,6 +147,7 @@ def test_a_derivation_is_applied_step_by_step_to_the_leftmost_nonterminal():
 
 @pytest.mark.parametrize(("make", "message"), [
     (lambda: derive(["make_robot", "make_wings"]), "make_wings"),
+    (lambda: derive("make_robot end_head"), "sequence of rule names, got the string 'make_robot end_head'"),
     (lambda: derive(["make_robot", "end_head", "make_body_without_legs"]), r"nonterminals \['body_joint', 'tail'\]"),
     (lambda: derive(["make_robot", "end_tail"]), "leftmost nonterminal is 'head'"),
     (lambda: derive([*VERTEBRATE.derivation(), "end_tail"]), "nothing is left to rewrite"),

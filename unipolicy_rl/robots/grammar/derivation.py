@@ -143,7 +143,8 @@ def _match(graph: RobotGraph, chosen: Rule, item: tuple[str, int]) -> tuple[dict
 
 
 def apply_rule(graph: RobotGraph, name: str) -> None:
-    """Rewrites ``graph``'s leftmost nonterminal with rule ``name``, in place."""
+    """Rewrites ``graph``'s leftmost nonterminal with rule ``name``, in place (a rule that does
+    not apply raises before anything changes)."""
     chosen = rule(name)
     item = leftmost(graph)
     if item is None:
@@ -153,9 +154,15 @@ def apply_rule(graph: RobotGraph, name: str) -> None:
         raise ValueError(f"rule {name!r} rewrites {chosen.rewrites!r}, but the leftmost nonterminal is {label!r}; "
                          f"rules for it: {list(rules_for(label))}")
     matched_nodes, matched_edges = _match(graph, chosen, item)
+    right_names = {spec.name for spec in chosen.right_nodes}
+    doomed = {left_name: node_id for left_name, node_id in matched_nodes.items() if left_name not in right_names}
+    for left_name, node_id in doomed.items():
+        dangling = sorted(set(graph.in_edges(node_id) + graph.out_edges(node_id)) - set(matched_edges))
+        if dangling:
+            raise ValueError(f"rule {name!r} deletes {left_name!r}, which has edges the rule does not match: "
+                             f"{dangling}")
 
     node_ids: dict[str, int] = {}
-    right_names = {spec.name for spec in chosen.right_nodes}
     for spec in chosen.right_nodes:
         if spec.name in matched_nodes:
             node_id = matched_nodes[spec.name]
@@ -183,16 +190,14 @@ def apply_rule(graph: RobotGraph, name: str) -> None:
             graph.edges[graph.new_id()] = GraphEdge(node_ids[spec.parent], node_ids[spec.child], spec.label,
                                                     spec.joint, spec.mirror)
 
-    for left_name, node_id in matched_nodes.items():
-        if left_name not in right_names:
-            dangling = graph.in_edges(node_id) + graph.out_edges(node_id)
-            if dangling:
-                raise ValueError(f"rule {name!r} deletes {left_name!r}, which still has edges {dangling}")
-            del graph.nodes[node_id]
+    for node_id in doomed.values():
+        del graph.nodes[node_id]
 
 
 def derive(derivation: Iterable[str], complete: bool = True) -> RobotGraph:
     """Applies ``derivation`` from the start symbol; with ``complete`` the result must be a robot."""
+    if isinstance(derivation, str):
+        raise ValueError(f"a derivation is a sequence of rule names, got the string {derivation!r}")
     graph = RobotGraph()
     steps = list(derivation)
     for step, name in enumerate(steps):

@@ -31,6 +31,8 @@ def stands_at(morphology: Morphology, lengths: Sequence[float]) -> bool:
 
 @dataclass(frozen=True)
 class MorphologySplit:
+    """Training and held-out morphologies, as :func:`split_morphologies` drew them from ``seed``."""
+
     seed: int
     train: tuple[Morphology, ...]
     held_out: tuple[Morphology, ...]
