@@ -29,7 +29,7 @@ from unipolicy_rl.robots.grammar import (
 )
 from unipolicy_rl.robots.grammar.derivation import RobotGraph
 from unipolicy_rl.robots.grammar.morphology import LIMB_JOINT_RULES
-from unipolicy_rl.robots.grammar.standing import segment_distances
+from unipolicy_rl.robots.grammar.standing import segment_distances, self_collisions
 from unipolicy_rl.robots.kinematics import rest_frames, rest_height, rest_segments, rpy_matrix
 
 THESIS_LEG = VERTEBRATE.limbs[0]
@@ -214,6 +214,36 @@ def test_segment_distances_agree_with_a_dense_search():
     for (p0, p1, q0, q1), distance in zip(points, distances, strict=True):
         dense = np.linalg.norm((p0 + u * (p1 - p0))[:, None] - (q0 + u * (q1 - q0))[None], axis=2).min()
         assert distance <= dense + 1e-9 and dense - distance < 2e-2
+
+
+def test_self_collisions_are_the_overlaps_pybullet_finds_less_the_joints_own():
+    """Bullet's own capsule distances at rest: every pair it finds overlapping is one the filter
+    reports, or a pair the filter leaves out on purpose (a link and its parent, a leg pair's mounts)."""
+    rng = np.random.default_rng(2)
+    robots = [describe(Morphology((FOLDED_LEG, ()), ("make_fixed_body_joint",)).derivation()), vertebrate()]
+    robots += [describe(sample_morphology(rng, SizeLimits(segments=(2, 3))).derivation()) for _ in range(4)]
+    assert len(self_collisions(robots[0])) == 7 and not self_collisions(robots[1])
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        for robot in robots:
+            body = load_robot(client, robot, (0.0, 0.0, 1.0), 0.0, 1.0)
+            index = {link.name: body.link_index(link.name) for link in robot.links}
+            joined = {frozenset((joint.parent, joint.child)) for joint in robot.joints}
+            joined |= {frozenset((first.child, second.child)) for first, second in itertools.combinations(
+                robot.joints, 2) if (first.parent, first.attach_fraction) == (second.parent, second.attach_fraction)}
+            ours = {frozenset(pair) for pair in self_collisions(robot)}
+            for a, b in itertools.combinations(index, 2):
+                points = pybullet.getClosestPoints(body.body_id, body.body_id, 0.01, index[a], index[b],
+                                                   physicsClientId=client)
+                distance = min((point[8] for point in points), default=math.inf)
+                pair = frozenset((a, b))
+                if distance < -1e-4 and pair not in joined:
+                    assert pair in ours, (robot.name, pair, distance)
+                if pair in ours:
+                    assert distance < 1e-4, (pair, distance)
+            pybullet.removeBody(body.body_id, physicsClientId=client)
+    finally:
+        pybullet.disconnect(client)
 
 
 @pytest.mark.parametrize("knee_angle_deg", [60.0, 120.0])
