@@ -29,6 +29,7 @@ from unipolicy_rl.robots.grammar import (
 )
 from unipolicy_rl.robots.grammar.derivation import RobotGraph
 from unipolicy_rl.robots.grammar.morphology import LIMB_JOINT_RULES
+from unipolicy_rl.robots.grammar.parts import link_kind, robogrammar_joint
 from unipolicy_rl.robots.grammar.standing import segment_distances, self_collisions
 from unipolicy_rl.robots.kinematics import rest_frames, rest_height, rest_segments, rpy_matrix
 
@@ -159,6 +160,9 @@ def test_a_derivation_is_applied_step_by_step_to_the_leftmost_nonterminal():
      "5 body segments"),
     (lambda: Morphology(((),), ("make_roll_body_joint",)), "1 body segments need 0 body joints"),
     (lambda: LimbLink("make_elbow_limb_joint", "make_long_limb_link"), "make_elbow_limb_joint"),
+    (lambda: Morphology((("make_long_limb_link",), ()), ("make_roll_body_joint",)), "'make_long_limb_link'"),
+    (lambda: robogrammar_joint("tilted", "hinge", axis_angle=(1, 1, 0, 30)), r"\(1, 1, 0, 30\)"),
+    (lambda: link_kind("wing"), "wing"),
     (lambda: split_morphologies(0, (0.15, 0.2), held_out_size=0), "held_out_size=0"),
     (lambda: split_morphologies(0, (0.15, 0.2), held_out_limits=SizeLimits((2, 4), (1, 2))), "no robot larger"),
 ])

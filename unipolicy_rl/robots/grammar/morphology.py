@@ -52,6 +52,10 @@ class Morphology:
         object.__setattr__(self, "body_joints", tuple(self.body_joints))
         if not self.limbs:
             raise ValueError("a morphology needs at least one body segment")
+        for limb in self.limbs:
+            for link in limb:
+                if not isinstance(link, LimbLink):
+                    raise ValueError(f"a leg is a tuple of LimbLink, got {link!r} in {limb!r}")
         if len(self.body_joints) != len(self.limbs) - 1:
             raise ValueError(f"{len(self.limbs)} body segments need {len(self.limbs) - 1} body joints, "
                              f"got {len(self.body_joints)}: {list(self.body_joints)}")
