@@ -6,6 +6,12 @@ hinge about the limb axis, which swings the bent leg fore and aft) and a shin on
 joint (a hinge perpendicular to the limb, which lifts the foot), the shin bent down by
 ``knee_angle_deg``. Two roll joints join the body links. That makes ten hinges; the
 thesis actuates four of them and locks the other six.
+
+A pair's legs are mirror images as RoboGrammar mirrors them: a hinge's axis has its lateral
+component negated on the right leg, so the left knee turns about -y and the right about +y.
+That makes this robot a derivation of the grammar (``unipolicy_rl.robots.grammar``,
+:data:`~unipolicy_rl.robots.grammar.VERTEBRATE`); a locked hinge's axis does
+not reach the URDF, so the default robot, knees locked, is unchanged by it.
 """
 
 from __future__ import annotations
@@ -58,13 +64,14 @@ def vertebrate(
         # The base is placed turned 180 degrees about z (its +x trails behind the head),
         # so world-left (+y) is the body frame's -y.
         side_yaw = -math.pi / 2 if leg.endswith("left") else math.pi / 2
+        knee_axis = (0.0, -1.0, 0.0) if leg.endswith("left") else (0.0, 1.0, 0.0)
         links += [Link(f"{leg}_{part}", length, LIMB_RADIUS, density) for part in ("mount", "thigh", "shin")]
         joints += [
             Joint(f"{leg}_mount", "fixed", body, f"{leg}_mount", 0.5, rpy=(0.0, 0.0, side_yaw)),
             Joint(f"{leg}_hip", "hinge", f"{leg}_mount", f"{leg}_thigh", 1.0, axis=(1.0, 0.0, 0.0),
                   actuated=f"{leg}_hip" in actuated),
             Joint(f"{leg}_knee", "hinge", f"{leg}_thigh", f"{leg}_shin", 1.0, rpy=(0.0, knee_pitch, 0.0),
-                  axis=(0.0, 1.0, 0.0), actuated=f"{leg}_knee" in actuated),
+                  axis=knee_axis, actuated=f"{leg}_knee" in actuated),
         ]
     return RobotDescription("vertebrate", tuple(links), tuple(joints))
 
