@@ -67,8 +67,8 @@ class OffPolicySettings:
         target_entropy: the policy's entropy target (``auto``: minus the number of actions).
         real_data_share: model-based runs (MBPO): the share of each minibatch drawn from real
             transitions, the rest from the model's branches (MBPO: 0.05).
-        model_buffer_capacity: model-based runs: imagined transitions kept (FIFO; MBPO keeps
-            about one epoch's branches, so the model data follow the latest model).
+        model_buffer_capacity: model-based runs: imagined transitions kept (FIFO: the branches of
+            the latest fits, so the model data follow the latest models, as in MBPO).
     """
 
     loss: str = "sac"
