@@ -2,8 +2,14 @@
 
 import pytest
 import torch
+from tensordict import TensorDict
+from test_world_models import THESIS_FROM_FULL, TOY, one_step_r2, toy_transitions
+from torchrl.envs.utils import check_env_specs
 
+from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
+from unipolicy_rl.networks import make_actor
 from unipolicy_rl.polynomial_chaos import Basis, PolynomialChaos, UniformInputs, sparse_least_squares
+from unipolicy_rl.world_models import ClosedFormTrainer, ImaginedWalkerEnv, SparsePCEDynamics, make_world_model
 
 LOW = torch.tensor([0.15, 0.4, -1.0, -2.0], dtype=torch.float64)
 HIGH = torch.tensor([0.2, 0.6, 1.0, 2.0], dtype=torch.float64)
@@ -153,3 +159,84 @@ def test_bad_sparse_settings_are_refused_by_name(settings, match):
     _, _, x, y = sparse_problem(40, 0)
     with pytest.raises(ValueError, match=match):
         PolynomialChaos.fit_sparse(x, y, LOW, HIGH, **{"order": 3, **settings})
+
+
+# ---- the sparse one-step PCE world model (world_model=pce_sparse) ------------------------------
+
+def episodes(transitions: TensorDict, length: int) -> TensorDict:
+    """``transitions`` cut into episodes of ``length`` rows (``episode_start`` as the buffer marks them)."""
+    start = torch.arange(transitions.batch_size[0]) % length == 0
+    return transitions.set("episode_start", start)
+
+
+def test_the_sparse_pce_fits_a_toy_dynamics_with_few_terms_per_output():
+    # The candidates of the fixed-basis toy test in tests/test_pce.py (165 terms), 3,000 transitions.
+    model = SparsePCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                              interactions="all", members=2)
+    report = ClosedFormTrainer().fit(model, episodes(toy_transitions(3000, 0), 50), torch.Generator().manual_seed(0))
+    # Stated accuracy: the held-out one-step prediction explains >= 95% of the state change's variance.
+    assert one_step_r2(model, toy_transitions(1000, 1)) >= 0.95, report
+    assert (report.validation_error < 0.03).all()
+    # Each output keeps a handful of the candidates; what it does not keep is exactly zero.
+    kept = (model.coefficients != 0).sum(1)  # [members, outputs]
+    assert (kept >= 1).all() and kept.float().mean() < model.terms / 4
+    assert report.extras["mean_terms"] == pytest.approx(float(kept.float().mean()))
+    assert 0 < report.extras["loo_error"] < 0.05
+
+
+def test_bootstrap_members_resample_whole_episodes_and_choose_their_own_terms_on_thin_data():
+    model = SparsePCEDynamics(TOY, action_dim=2, order=4, q=0.75, members=4)
+    data = episodes(toy_transitions(240, 2), 20)  # 12 episodes of 20 steps
+    train = torch.arange(240)
+    weights = model.episode_bootstrap(data, train, torch.Generator().manual_seed(0))
+    assert (weights[0] == 1).all()
+    per_episode = weights.reshape(4, 12, 20)
+    assert (per_episode == per_episode[..., :1]).all()  # one draw per episode, shared by its steps
+    assert not (weights[1:] == 1).all()
+    ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
+    selected = model.coefficients != 0  # [members, terms, outputs]
+    differ = [not torch.equal(selected[a], selected[b]) for a in range(4) for b in range(a + 1, 4)]
+    assert all(differ)  # every pair of members keeps different terms
+    # ... and predicts differently, where the data do not pin the dynamics down.
+    probe = toy_transitions(500, 3)
+    args = (probe["state"], probe["action"], probe["design"])
+    first, second = (model.predict(*args, torch.full((500,), m), deterministic=True) for m in (0, 1))
+    assert (first - second).abs().mean() > 1e-4
+
+
+def test_the_sparse_pces_imagined_env_passes_torchrls_checks():
+    torch.manual_seed(0)
+    env = BatchedWalkerEnv(4, full_state=True)
+    env.set_seed(0)
+    rollout = env.rollout(30)
+    env.close()
+    data = TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
+                       "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
+    model = SparsePCEDynamics(THESIS_FROM_FULL, 4, order=3, members=2, max_terms=20)
+    ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
+    assert int(model.fitted_terms) >= 1
+    reference = BatchedWalkerEnv(1, full_state=True)
+    imagined = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference,
+                                 lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design"),
+                                 batch_size=6)
+    check_env_specs(imagined)
+    assert imagined.rollout(5, make_actor(18, 4), break_when_any_done=False).shape == (6, 5)
+    reference.close()
+
+
+@pytest.mark.parametrize(
+    ("settings", "match"),
+    [
+        ({"order": -1}, "order must be an integer >= 0, got -1"),
+        ({"q": 2.0}, "q must lie in .* got 2.0"),
+        ({"max_terms": 0}, "max_terms must be a positive integer or None, got 0"),
+        ({"patience": -3}, "patience must be a positive integer, got -3"),
+        ({"tolerance": -1.0}, "tolerance must be a finite number >= 0, got -1.0"),
+        ({"loo_samples": 1}, "loo_samples must be an integer >= 2, got 1"),
+        ({"members": 0}, "members must be a positive integer, got 0"),
+        ({"interactions": "some"}, "interactions must be one of .*'some'"),
+    ],
+)
+def test_bad_sparse_pce_settings_are_refused_by_name(settings, match):
+    with pytest.raises(ValueError, match=match):
+        SparsePCEDynamics(TOY, action_dim=2, **settings)

@@ -94,6 +94,9 @@ def sparse_least_squares(design: torch.Tensor, targets: torch.Tensor, weights: t
     if weights is None:
         weights = torch.ones(design.shape[:-1], dtype=design.dtype, device=design.device)
     weights = weights.double()
+    samples = int((weights > 0).sum(-1).min())
+    if samples < 2:
+        raise ValueError(f"a sparse fit needs at least 2 samples of weight > 0 in every problem, got {samples}")
     weighted = design * weights.unsqueeze(-1)
     gram = weighted.transpose(-1, -2) @ design
     moment = weighted.transpose(-1, -2) @ targets
@@ -134,8 +137,8 @@ def select_terms(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.
             one-standard-error rule of Hastie, Tibshirani and Friedman in another form).
 
     Raises:
-        ValueError: a bad setting, mismatched shapes, no candidate at all, or fewer than 2
-            samples of weight > 0, naming the value.
+        ValueError: a bad setting, mismatched shapes, no candidate at all, no rows, or a total
+            weight below 2, naming the value.
     """
     check_sparsity(max_terms, patience, tolerance)
     batch, terms, outputs = gram.shape[:-2], gram.shape[-1], moment.shape[-1]
@@ -158,11 +161,12 @@ def select_terms(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.
     candidates = candidates.to(device).expand(*batch, terms).reshape(problems, terms)
     if not candidates.any(-1).all():
         raise ValueError("no candidate term to select from in a problem")
-    samples = (row_weights > 0).sum(-1) if s else torch.zeros(problems, dtype=torch.long, device=device)
-    fitted = int(samples.min())
+    if s < 1:
+        raise ValueError("no rows to estimate the leave-one-out error on")
+    fitted = int(total_weight.min())
     if fitted < 2:
-        raise ValueError(f"a sparse fit needs at least 2 samples of weight > 0 to estimate its leave-one-out error, "
-                         f"got {fitted}")
+        raise ValueError(f"a sparse fit needs a total sample weight of at least 2, got {float(total_weight.min())}")
+    # Never as many terms as samples; past the rank of the data the dependence test ends the path anyway.
     steps = min(terms, int(candidates.sum(-1).max()), fitted - 1, max_terms or terms)
 
     # Problems are (problem, output) pairs, solved in chunks that fit the memory budget.
