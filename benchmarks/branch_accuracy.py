@@ -2,13 +2,15 @@
 
     python benchmarks/branch_accuracy.py <run dir or checkpoint.pt of a model-based run>
         [--fit-transitions 30000] [--test-transitions 10000] [--horizons 1 3 8 25] [--starts 2000]
+        [--models pce moe]
 
 ``model_accuracy.py`` and ``surrogate_accuracy.py`` measure surrogates on episodes of a
 scripted gait and of random actions, from the episode start. Training meets a surrogate
 elsewhere: imagined branches of a few steps (``world_model=pce``: 3 growing to 8) start from
 any real state in the replay buffer, and the actions are the policy's. This benchmark takes
 that buffer from a model-based run's checkpoint (a walking policy's data: the robot is
-metres from x = 0), fits the one-step PCE and the default ensemble as their yamls say on the
+metres from x = 0), fits the ``--models`` (world_model yamls: by default the one-step PCE and the
+default ensemble; ``pce_sparse`` the adaptive sparse PCE) as their yamls say on the
 ``--fit-transitions`` real steps before the last ``--test-transitions`` (what a fit at that
 point of the run saw), and rolls each out open loop from ``--starts`` held-out real states
 with the recorded actions, ``k`` steps for each horizon (starts whose episode lasts ``k``
@@ -45,18 +47,19 @@ X, X_DOT = 0, 3  # base forward position and velocity in the state
 def buffer_of(path: Path) -> TensorDict:
     """The real transitions a model-based run's checkpoint carries, oldest first."""
     checkpoint = load_checkpoint(path / "checkpoint.pt" if path.is_dir() else path)
-    collector = checkpoint.get("collector") or {}
-    if "buffer" not in collector:
+    # Today's checkpoints keep the buffer at the top; older ones kept it in the collector's state.
+    buffer = checkpoint.get("replay_buffer") or (checkpoint.get("collector") or {}).get("buffer")
+    if buffer is None:
         raise ValueError(f"{path} is not a model-based run's checkpoint (no replay buffer in it)")
     # The replay buffer's own state dict (TorchRL's ReplayBuffer.state_dict), read here rather
     # than loaded into a ReplayBuffer: the rows are wanted in the order they were written, which
     # only the writer's cursor gives, and TorchRL has no public accessor for it.
-    storage = collector["buffer"]["_storage"]
+    storage = buffer["_storage"]
     rows, length = storage["_storage"], int(storage["_len"])
-    writes = int(collector["buffer"]["_writer"]["_write_count"])
+    writes = int(buffer["_writer"]["_write_count"])
     data = TensorDict({key: value[:length] for key, value in rows.items()}, batch_size=[length])
     if writes > length:  # the FIFO wrapped: the oldest row sits at the write cursor
-        cursor = int(collector["buffer"]["_writer"]["_cursor"])
+        cursor = int(buffer["_writer"]["_cursor"])
         data = torch.cat([data[cursor:], data[:cursor]])
     return data
 
@@ -98,6 +101,8 @@ def main() -> None:
     parser.add_argument("--test-transitions", type=int, default=10_000)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 8, 25])
     parser.add_argument("--starts", type=int, default=2000, help="branches per horizon")
+    parser.add_argument("--models", nargs="+", default=["pce", "moe"], choices=["pce", "pce_sparse", "moe"],
+                        help="world_model yamls to fit and compare (ratios are against moe when it is among them)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -116,7 +121,7 @@ def main() -> None:
           f"{len(test)} are held out")
     horizons = sorted(set(args.horizons))
     results = {}
-    for name in ("pce", "moe"):
+    for name in args.models:
         torch.manual_seed(args.seed)
         model, trainer = setup.configured(name, threads=1)
         report = trainer.fit(model, fit, torch.Generator().manual_seed(args.seed))
@@ -139,11 +144,15 @@ def main() -> None:
               f"{r['relative_x_dot']:.3f} | {r['relative_displacement']:.3f} | {r['absolute_x_cm']:.2f} | "
               f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} |")
     k = 8 if 8 in horizons else horizons[-1]
-    pce, moe = results["pce", True, k], results["moe", True, k]
-    print(f"{k}-step branches, deterministic: pce relative error of x {pce['relative_x']:.3f} (target 0.1), of the "
-          f"displacement {pce['relative_displacement']:.3f}; pce / moe displacement error: "
-          f"{pce['relative_displacement']:.3f} / {moe['relative_displacement']:.3f} = "
-          f"{pce['relative_displacement'] / moe['relative_displacement']:.2f}")
+    for name in (m for m in args.models if m != "moe"):
+        pce = results[name, True, k]
+        error = pce["relative_displacement"]
+        line = (f"{k}-step branches, deterministic: {name} relative error of x {pce['relative_x']:.3f} (target 0.1), "
+                f"of the displacement {error:.3f}")
+        if "moe" in args.models:
+            moe = results["moe", True, k]["relative_displacement"]
+            line += f"; {name} / moe displacement error: {error:.3f} / {moe:.3f} = {error / moe:.2f}"
+        print(line)
 
 
 if __name__ == "__main__":

@@ -154,7 +154,7 @@ def select_terms(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.
     moment = moment.double().reshape(problems, terms, outputs)
     target_square = target_square.double().reshape(problems, outputs)
     total_weight = total_weight.double().reshape(-1).expand(problems)
-    rows = rows.double().expand(*batch, s, terms).reshape(problems, s, terms)
+    rows = rows.double().expand(*batch, s, terms).reshape(problems, s, terms).transpose(-1, -2).contiguous()
     row_targets = row_targets.double().expand(*batch, s, outputs).reshape(problems, s, outputs)
     row_weights = row_weights.double().expand(*batch, s).reshape(problems, s)
     candidates = torch.ones(terms, dtype=torch.bool, device=device) if candidates is None else candidates.bool()
@@ -195,16 +195,17 @@ def _greedy_path(gram, moment, target_square, total_weight, rows, row_targets, r
     (orthonormal under the weights), the state carried is ``G[:, A] L^-T`` (each candidate's
     projection on ``Q``), ``L^-1``, ``Q^T W y``, the residual correlations ``X^T W r``, and on the
     leave-one-out rows ``Q`` itself, the residuals and the leverages."""
-    pairs, terms, s = len(problem), gram.shape[-1], rows.shape[-2]
+    pairs, terms, s = len(problem), gram.shape[-1], rows.shape[-1]  # rows: [problems, terms, s]
     device, dtype = gram.device, gram.dtype
     diagonal = gram.diagonal(dim1=-2, dim2=-1)[problem]  # [B, terms]
     residual_correlation = moment[problem, :, output].clone()  # X^T W r, r the residual of the current fit
     available = candidates[problem] & (diagonal > 0)
     projected_norm = torch.zeros(pairs, terms, dtype=dtype, device=device)  # |G_{j,A} L^-T|^2
-    projections = torch.zeros(pairs, terms, steps, dtype=dtype, device=device)  # G[:, A] L^-T
+    # Step-major ([pairs, steps, ...]): the first k steps are a contiguous block, which the products take as it is.
+    projections = torch.zeros(pairs, steps, terms, dtype=dtype, device=device)  # (G[:, A] L^-T)^T
     inverse_factor = torch.zeros(pairs, steps, steps, dtype=dtype, device=device)  # L^-1
     along = torch.zeros(pairs, steps, dtype=dtype, device=device)  # Q^T W y
-    row_q = torch.zeros(pairs, s, steps, dtype=dtype, device=device)
+    row_q = torch.zeros(pairs, steps, s, dtype=dtype, device=device)  # Q^T at the rows
     y = row_targets[problem, :, output]
     w = row_weights[problem]
     residual = y.clone()
@@ -230,10 +231,11 @@ def _greedy_path(gram, moment, target_square, total_weight, rows, row_targets, r
         d = remaining[pair, j].clamp_min(torch.finfo(dtype).tiny).sqrt()
         d = torch.where(live, d, torch.ones_like(d))  # a finished pair adds a zero column
         keep = live.to(dtype)
-        known = projections[pair, j, :k]  # l = L^-1 G_{A,j}: [B, k]
-        column = (gram[problem, :, j] - (projections[..., :k] @ known.unsqueeze(-1)).squeeze(-1)) / d.unsqueeze(-1)
+        known = projections[pair, :k, j]  # l = L^-1 G_{A,j}: [B, k]
+        # G is symmetric: its row j is its column j, and a row is contiguous.
+        column = (gram[problem, j] - (known.unsqueeze(-2) @ projections[:, :k]).squeeze(-2)) / d.unsqueeze(-1)
         column = column * keep.unsqueeze(-1)
-        projections[..., k] = column
+        projections[:, k] = column
         projected_norm += column.square()
         coefficient = residual_correlation[pair, j] / d * keep  # q_k^T W y
         along[:, k] = coefficient
@@ -242,9 +244,9 @@ def _greedy_path(gram, moment, target_square, total_weight, rows, row_targets, r
         inverse_factor[:, k, :k] = new_row * keep.unsqueeze(-1)
         inverse_factor[:, k, k] = keep / d
         inverse_trace += (new_row.square().sum(-1) + d.pow(-2)) * keep
-        q = (rows[problem, :, j] - (row_q[..., :k] @ known.unsqueeze(-1)).squeeze(-1)) / d.unsqueeze(-1)
+        q = (rows[problem, j] - (known.unsqueeze(-2) @ row_q[:, :k]).squeeze(-2)) / d.unsqueeze(-1)
         q = q * keep.unsqueeze(-1)
-        row_q[..., k] = q
+        row_q[:, k] = q
         leverage += w * q.square()
         residual -= q * coefficient.unsqueeze(-1)
         path[:, k] = torch.where(live, j, torch.full_like(j, -1))
