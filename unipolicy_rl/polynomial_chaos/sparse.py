@@ -5,13 +5,16 @@ determine, and most of them describe nothing the outputs depend on. Blatman and 
 select terms greedily and stop where the corrected leave-one-out error is lowest; this module
 does that, batched over problems (outputs, bootstrap members) in torch.
 
-The greedy step is forward selection by orthogonal least squares (the exact-gain form of
-orthogonal matching pursuit): at each step the candidate that lowers the residual sum of squares
-most joins, and the coefficients are the least-squares fit on the selected terms (Blatman and
-Sudret's hybrid LARS refits the same way; only the order of selection differs). On a policy's
-strongly correlated data the plain correlation rule of OMP or LARS keeps choosing columns nearly
-collinear with the selected ones; the exact gain divides the correlation by what is left of the
-column outside the selected span, and a column with (almost) nothing left is never chosen.
+The greedy step is orthogonal matching pursuit: at each step the candidate whose (normalised)
+column correlates most with the current residual joins, and the coefficients are the
+least-squares fit on the selected terms (Blatman and Sudret's hybrid LARS refits the same way;
+only the order of selection differs). Dividing the correlation by what is left of the column
+outside the selected span instead (the exact drop of the residual, "orthogonal least squares")
+was tried on a walking policy's data and is worse: it favours columns nearly spanned by the
+selected ones, which fit a few extreme rows with large coefficients: its leave-one-out error
+passes 1 (no better than the mean) by 200 terms for most outputs, where this rule's is still
+near its lowest (docs/results.md, "Polynomial chaos"). A column with (almost) nothing left
+outside the selected span is never chosen.
 
 Everything but the leave-one-out error runs on the normal equations (the Gram matrix
 ``X^T W X``, the moments ``X^T W Y``), one incremental Cholesky step per selected term, so the
@@ -20,9 +23,9 @@ leave-one-out residual of a row, ``e_i = r_i / (1 - h_ii)`` (``h_ii`` the levera
 row itself; it is tracked on the rows the caller hands over (all of them for a small fit, an
 unbiased random subsample for a large one: the mean of ``e_i^2`` over a random subset estimates
 the mean over all rows). It is multiplied by Chapelle's correction
-``T = N / (N - k) * (1 + tr((X_A^T W X_A)^-1))`` (Blatman and Sudret 2011, eq. 30: the plain
+``T = N / (N - k) * (1 + tr((X_A^T W X_A)^-1))`` (Blatman and Sudret 2011: the plain
 estimate is optimistic when ``k`` terms are fitted to ``N`` samples) and divided by the output's
-variance, so 1 means "no better than the mean".
+variance over those rows, so 1 means "no better than the mean".
 
 A row of weight 0 (a bootstrap member that did not draw it) is not in the fit: its ``h_ii`` is
 0 and its error is an honest out-of-bag error; a row drawn several times is left out with all its
@@ -31,6 +34,7 @@ copies (``h_ii = w_i x_i^T G^-1 x_i``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -126,8 +130,8 @@ def select_terms(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.
         candidates: ``[terms]`` or ``[..., terms]`` (bool): the terms that may be selected
             (None: all). Leave out those of an input that never varies: their columns repeat
             lower terms'.
-        max_terms: the longest path (None: as long as the data allow, at most one term fewer
-            than the samples of weight > 0).
+        max_terms: the longest path (None: as long as the data allow: fewer terms than the
+            total weight, and none that the selected ones already span).
         patience: the path ends once the error has not improved for this many steps in every
             problem (it rarely comes back down: each term adds variance to the estimate).
         tolerance: keep the sparsest fit on the path whose error is at most ``(1 + tolerance)``
@@ -148,7 +152,7 @@ def select_terms(gram: torch.Tensor, moment: torch.Tensor, target_square: torch.
         raise ValueError(f"rows {tuple(rows.shape)} and row targets {tuple(row_targets.shape)} disagree with "
                          f"{terms} terms and {outputs} outputs")
     device = gram.device
-    problems = int(torch.tensor(batch).prod()) if batch else 1
+    problems = math.prod(batch)
     s = rows.shape[-2]
     gram = gram.double().reshape(problems, terms, terms)
     moment = moment.double().reshape(problems, terms, outputs)
@@ -225,7 +229,8 @@ def _greedy_path(gram, moment, target_square, total_weight, rows, row_targets, r
         live &= eligible.any(-1)
         if not live.any():
             break
-        gain = torch.where(eligible, residual_correlation.square() / remaining.clamp_min(torch.finfo(dtype).tiny),
+        # OMP: |correlation| with the normalised column (see the module docstring for why not the exact gain).
+        gain = torch.where(eligible, residual_correlation.square() / diagonal.clamp_min(torch.finfo(dtype).tiny),
                            torch.full_like(remaining, -1.0))
         j = gain.argmax(-1)
         d = remaining[pair, j].clamp_min(torch.finfo(dtype).tiny).sqrt()
