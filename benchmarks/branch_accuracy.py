@@ -21,8 +21,12 @@ Per horizon, over the branches: the mean relative error of the base's x and x_do
 thesis' floors (1 cm, 1 cm/s; eq. 5.2), the same for the branch's displacement x_k - x_0
 (what the reward sums; the position itself flatters a robot far from the origin), the mean
 absolute errors, and the share of predictions that faulted (non-finite or past the
-explosion limit: the imagined env ends the branch there). One thread (accuracy does not
-depend on it).
+explosion limit: the imagined env ends the branch there). For the deterministic branches also
+whether the members' disagreement tells where the model is wrong: every voting member rolls
+each branch out with its mean prediction, and Spearman's rank correlation is taken between the
+members' spread (standard deviation) of the predicted displacement and the error of their mean
+(``spread_rank_correlation``; 0: the spread says nothing, 1: it orders the branches by error).
+One thread (accuracy does not depend on it).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from unipolicy_rl.checkpoint import load_checkpoint
 from unipolicy_rl.envs import RobotSettings
 from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, relative_error
 from unipolicy_rl.world_models import StateLayout
+from unipolicy_rl.world_models.imagined import PredictNextState
 
 X, X_DOT = 0, 3  # base forward position and velocity in the state
 
@@ -91,7 +96,34 @@ def measure(model, test: TensorDict, horizon: int, deterministic: bool, starts: 
             "relative_displacement": float(displacement),
             "absolute_x_cm": float((predicted[:, X] - true[:, X]).abs().mean()) * 100,
             "absolute_x_dot_cm": float((predicted[:, X_DOT] - true[:, X_DOT]).abs().mean()) * 100,
-            "faulted": faults / (len(rows) * horizon), "branches": len(rows)}
+            "faulted": faults / (len(rows) * horizon), "branches": len(rows),
+            "spread_rank_correlation": spread_rank_correlation(model, start, test["action"][window],
+                                                               test["design"][rows], true[:, X] - start[:, X])
+            if deterministic else float("nan")}
+
+
+def spread_rank_correlation(model, start: torch.Tensor, actions: torch.Tensor, designs: torch.Tensor,
+                            displacement: torch.Tensor) -> float:
+    """Spearman's correlation between the voting members' spread of the predicted displacement
+    and the error of their mean, over branches (each member's mean prediction, open loop)."""
+    members = model.voting_members
+    if members is None or len(members) < 2:
+        return float("nan")
+    predict = PredictNextState(model, deterministic=True)
+    finals = []
+    for member in members.tolist():
+        state = start
+        chosen = torch.full((len(start), 1), member, dtype=torch.long)
+        for step in range(actions.shape[1]):
+            state, _, _, _ = predict(state, actions[:, step], designs, chosen)
+        finals.append(state[:, X] - start[:, X])
+    predicted = torch.stack(finals)  # [members, branches]
+    spread, error = predicted.std(0), (predicted.mean(0) - displacement).abs()
+
+    def ranks(values: torch.Tensor) -> torch.Tensor:
+        return values.argsort().argsort().double()
+
+    return float(torch.corrcoef(torch.stack([ranks(spread), ranks(error)]))[0, 1])
 
 
 def main() -> None:
@@ -137,12 +169,12 @@ def main() -> None:
                       f"{results[name, deterministic, horizon]['branches']} branches in "
                       f"{time.perf_counter() - started:.1f} s")
     print("| model | prediction | k | rel. err. x | rel. err. x_dot | rel. err. displacement | abs. err. x (cm) "
-          "| abs. err. x_dot (cm/s) | predictions faulted |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| abs. err. x_dot (cm/s) | predictions faulted | spread-error rank correlation |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for (name, deterministic, horizon), r in results.items():
         print(f"| {name} | {'deterministic' if deterministic else 'sampled'} | {horizon} | {r['relative_x']:.3f} | "
               f"{r['relative_x_dot']:.3f} | {r['relative_displacement']:.3f} | {r['absolute_x_cm']:.2f} | "
-              f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} |")
+              f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} | {r['spread_rank_correlation']:.2f} |")
     k = 8 if 8 in horizons else horizons[-1]
     for name in (m for m in args.models if m != "moe"):
         pce = results[name, True, k]

@@ -10,6 +10,7 @@ from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.polynomial_chaos import Basis, PolynomialChaos, UniformInputs, sparse_least_squares
 from unipolicy_rl.world_models import ClosedFormTrainer, ImaginedWalkerEnv, SparsePCEDynamics, make_world_model
+from unipolicy_rl.world_models.trainer import EPISODE_START
 
 LOW = torch.tensor([0.15, 0.4, -1.0, -2.0], dtype=torch.float64)
 HIGH = torch.tensor([0.2, 0.6, 1.0, 2.0], dtype=torch.float64)
@@ -164,9 +165,9 @@ def test_bad_sparse_settings_are_refused_by_name(settings, match):
 # ---- the sparse one-step PCE world model (world_model=pce_sparse) ------------------------------
 
 def episodes(transitions: TensorDict, length: int) -> TensorDict:
-    """``transitions`` cut into episodes of ``length`` rows (``episode_start`` as the buffer marks them)."""
+    """``transitions`` cut into episodes of ``length`` rows, marked as the replay buffer marks them."""
     start = torch.arange(transitions.batch_size[0]) % length == 0
-    return transitions.set("episode_start", start)
+    return transitions.set(EPISODE_START, start)
 
 
 def test_the_sparse_pce_fits_a_toy_dynamics_with_few_terms_per_output():
