@@ -34,7 +34,7 @@ class SparsePCEDynamics(PCEDynamics):
        others Poisson(1) draws per *episode* (every step of an episode shares its draw: the steps
        of one episode are not independent samples, and resampling them one by one would make
        the members agree more than the data warrant);
-    2. per member and output, greedy forward selection on those normal equations, stopped at
+    2. per member and output, orthogonal matching pursuit on those normal equations, stopped at
        the lowest corrected leave-one-out error (or the sparsest fit within ``tolerance`` of it),
        the error estimated on ``loo_samples`` random training rows (all of them when fewer);
     3. the terms of an input that never varies in the training data are no candidates.
