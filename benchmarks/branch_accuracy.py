@@ -2,13 +2,15 @@
 
     python benchmarks/branch_accuracy.py <run dir or checkpoint.pt of a model-based run>
         [--fit-transitions 30000] [--test-transitions 10000] [--horizons 1 3 8 25] [--starts 2000]
+        [--models pce moe]
 
 ``model_accuracy.py`` and ``surrogate_accuracy.py`` measure surrogates on episodes of a
 scripted gait and of random actions, from the episode start. Training meets a surrogate
 elsewhere: imagined branches of a few steps (``world_model=pce``: 3 growing to 8) start from
 any real state in the replay buffer, and the actions are the policy's. This benchmark takes
 that buffer from a model-based run's checkpoint (a walking policy's data: the robot is
-metres from x = 0), fits the one-step PCE and the default ensemble as their yamls say on the
+metres from x = 0), fits the ``--models`` (world_model yamls: by default the one-step PCE and the
+default ensemble; ``pce_sparse`` the adaptive sparse PCE) as their yamls say on the
 ``--fit-transitions`` real steps before the last ``--test-transitions`` (what a fit at that
 point of the run saw), and rolls each out open loop from ``--starts`` held-out real states
 with the recorded actions, ``k`` steps for each horizon (starts whose episode lasts ``k``
@@ -19,8 +21,12 @@ Per horizon, over the branches: the mean relative error of the base's x and x_do
 thesis' floors (1 cm, 1 cm/s; eq. 5.2), the same for the branch's displacement x_k - x_0
 (what the reward sums; the position itself flatters a robot far from the origin), the mean
 absolute errors, and the share of predictions that faulted (non-finite or past the
-explosion limit: the imagined env ends the branch there). One thread (accuracy does not
-depend on it).
+explosion limit: the imagined env ends the branch there). For the deterministic branches also
+whether the members' disagreement tells where the model is wrong: every voting member rolls
+each branch out with its mean prediction, and Spearman's rank correlation is taken between the
+members' spread (standard deviation) of the predicted displacement and the error of their mean
+(``spread_rank_correlation``; 0: the spread says nothing, 1: it orders the branches by error).
+One thread (accuracy does not depend on it).
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from unipolicy_rl.checkpoint import load_checkpoint
 from unipolicy_rl.envs import RobotSettings
 from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, relative_error
 from unipolicy_rl.world_models import StateLayout
+from unipolicy_rl.world_models.imagined import PredictNextState
 
 X, X_DOT = 0, 3  # base forward position and velocity in the state
 
@@ -45,18 +52,19 @@ X, X_DOT = 0, 3  # base forward position and velocity in the state
 def buffer_of(path: Path) -> TensorDict:
     """The real transitions a model-based run's checkpoint carries, oldest first."""
     checkpoint = load_checkpoint(path / "checkpoint.pt" if path.is_dir() else path)
-    collector = checkpoint.get("collector") or {}
-    if "buffer" not in collector:
+    # Today's checkpoints keep the buffer at the top; older ones kept it in the collector's state.
+    buffer = checkpoint.get("replay_buffer") or (checkpoint.get("collector") or {}).get("buffer")
+    if buffer is None:
         raise ValueError(f"{path} is not a model-based run's checkpoint (no replay buffer in it)")
     # The replay buffer's own state dict (TorchRL's ReplayBuffer.state_dict), read here rather
     # than loaded into a ReplayBuffer: the rows are wanted in the order they were written, which
     # only the writer's cursor gives, and TorchRL has no public accessor for it.
-    storage = collector["buffer"]["_storage"]
+    storage = buffer["_storage"]
     rows, length = storage["_storage"], int(storage["_len"])
-    writes = int(collector["buffer"]["_writer"]["_write_count"])
+    writes = int(buffer["_writer"]["_write_count"])
     data = TensorDict({key: value[:length] for key, value in rows.items()}, batch_size=[length])
     if writes > length:  # the FIFO wrapped: the oldest row sits at the write cursor
-        cursor = int(collector["buffer"]["_writer"]["_cursor"])
+        cursor = int(buffer["_writer"]["_cursor"])
         data = torch.cat([data[cursor:], data[:cursor]])
     return data
 
@@ -88,7 +96,34 @@ def measure(model, test: TensorDict, horizon: int, deterministic: bool, starts: 
             "relative_displacement": float(displacement),
             "absolute_x_cm": float((predicted[:, X] - true[:, X]).abs().mean()) * 100,
             "absolute_x_dot_cm": float((predicted[:, X_DOT] - true[:, X_DOT]).abs().mean()) * 100,
-            "faulted": faults / (len(rows) * horizon), "branches": len(rows)}
+            "faulted": faults / (len(rows) * horizon), "branches": len(rows),
+            "spread_rank_correlation": spread_rank_correlation(model, start, test["action"][window],
+                                                               test["design"][rows], true[:, X] - start[:, X])
+            if deterministic else float("nan")}
+
+
+def spread_rank_correlation(model, start: torch.Tensor, actions: torch.Tensor, designs: torch.Tensor,
+                            displacement: torch.Tensor) -> float:
+    """Spearman's correlation between the voting members' spread of the predicted displacement
+    and the error of their mean, over branches (each member's mean prediction, open loop)."""
+    members = model.voting_members
+    if members is None or len(members) < 2:
+        return float("nan")
+    predict = PredictNextState(model, deterministic=True)
+    finals = []
+    for member in members.tolist():
+        state = start
+        chosen = torch.full((len(start), 1), member, dtype=torch.long)
+        for step in range(actions.shape[1]):
+            state, _, _, _ = predict(state, actions[:, step], designs, chosen)
+        finals.append(state[:, X] - start[:, X])
+    predicted = torch.stack(finals)  # [members, branches]
+    spread, error = predicted.std(0), (predicted.mean(0) - displacement).abs()
+
+    def ranks(values: torch.Tensor) -> torch.Tensor:
+        return values.argsort().argsort().double()
+
+    return float(torch.corrcoef(torch.stack([ranks(spread), ranks(error)]))[0, 1])
 
 
 def main() -> None:
@@ -98,6 +133,8 @@ def main() -> None:
     parser.add_argument("--test-transitions", type=int, default=10_000)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 8, 25])
     parser.add_argument("--starts", type=int, default=2000, help="branches per horizon")
+    parser.add_argument("--models", nargs="+", default=["pce", "moe"], choices=["pce", "pce_sparse", "moe"],
+                        help="world_model yamls to fit and compare (ratios are against moe when it is among them)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -116,7 +153,7 @@ def main() -> None:
           f"{len(test)} are held out")
     horizons = sorted(set(args.horizons))
     results = {}
-    for name in ("pce", "moe"):
+    for name in args.models:
         torch.manual_seed(args.seed)
         model, trainer = setup.configured(name, threads=1)
         report = trainer.fit(model, fit, torch.Generator().manual_seed(args.seed))
@@ -132,18 +169,22 @@ def main() -> None:
                       f"{results[name, deterministic, horizon]['branches']} branches in "
                       f"{time.perf_counter() - started:.1f} s")
     print("| model | prediction | k | rel. err. x | rel. err. x_dot | rel. err. displacement | abs. err. x (cm) "
-          "| abs. err. x_dot (cm/s) | predictions faulted |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| abs. err. x_dot (cm/s) | predictions faulted | spread-error rank correlation |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for (name, deterministic, horizon), r in results.items():
         print(f"| {name} | {'deterministic' if deterministic else 'sampled'} | {horizon} | {r['relative_x']:.3f} | "
               f"{r['relative_x_dot']:.3f} | {r['relative_displacement']:.3f} | {r['absolute_x_cm']:.2f} | "
-              f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} |")
+              f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} | {r['spread_rank_correlation']:.2f} |")
     k = 8 if 8 in horizons else horizons[-1]
-    pce, moe = results["pce", True, k], results["moe", True, k]
-    print(f"{k}-step branches, deterministic: pce relative error of x {pce['relative_x']:.3f} (target 0.1), of the "
-          f"displacement {pce['relative_displacement']:.3f}; pce / moe displacement error: "
-          f"{pce['relative_displacement']:.3f} / {moe['relative_displacement']:.3f} = "
-          f"{pce['relative_displacement'] / moe['relative_displacement']:.2f}")
+    for name in (m for m in args.models if m != "moe"):
+        pce = results[name, True, k]
+        error = pce["relative_displacement"]
+        line = (f"{k}-step branches, deterministic: {name} relative error of x {pce['relative_x']:.3f} (target 0.1), "
+                f"of the displacement {error:.3f}")
+        if "moe" in args.models:
+            moe = results["moe", True, k]["relative_displacement"]
+            line += f"; {name} / moe displacement error: {error:.3f} / {moe:.3f} = {error / moe:.2f}"
+        print(line)
 
 
 if __name__ == "__main__":

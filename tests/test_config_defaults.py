@@ -43,6 +43,7 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.world_models.PCEDynamics": ("world_model/pce.yaml", "model"),
     "unipolicy_rl.world_models.ClosedFormTrainer": ("world_model/pce.yaml", "trainer"),
     "unipolicy_rl.world_models.ThesisPCEDynamics": ("world_model/pce_thesis.yaml", "model"),
+    "unipolicy_rl.world_models.SparsePCEDynamics": ("world_model/pce_sparse.yaml", "model"),
 }
 # Every other node with a ``_target_``: a deliberate choice of the same class, and the values in
 # which it differs from the class's defaults (anything else it sets must equal the default).
@@ -50,6 +51,7 @@ VARIANTS: dict[tuple[str, str], dict[str, object]] = {
     ("design/de.yaml", ""): {"length_range": [0.175, 0.175], "density_range": [0.5, 0.5]},  # DE: the SE centre
     ("world_model/moe_thesis.yaml", "trainer"): {},
     ("world_model/pce_thesis.yaml", "trainer"): {"oversampling": 20.0},  # the thesis PCE's correlated samples
+    ("world_model/pce_sparse.yaml", "trainer"): {},
 }
 # Targets outside this project, configured as their own documentation says: no defaults of ours.
 EXTERNAL_PREFIXES = ("torchrl.record.loggers.",)

@@ -14,7 +14,7 @@ from unipolicy_rl.validation import validate_config
 ROOT = Path(__file__).resolve().parents[1]
 # A model source composes every key a real source has, and its world model's.
 SOURCES = (["source=moe"], ["source=moe", "world_model=moe_thesis"], ["source=pce"],
-           ["source=pce", "world_model=pce_thesis"])
+           ["source=pce", "world_model=pce_thesis"], ["source=pce", "world_model=pce_sparse"])
 # Values a number is tried with; every checked key must refuse at least one of them.
 INVALID_CANDIDATES = (-1, 0, 10**9)
 # Numeric keys any value of which (among the candidates) is fine, and why.

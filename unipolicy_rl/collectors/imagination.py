@@ -31,6 +31,7 @@ from unipolicy_rl.envs.reward import RewardWeights
 from unipolicy_rl.seeding import IMAGINATION, epoch_seed
 from unipolicy_rl.world_models.dynamics import Dynamics
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
+from unipolicy_rl.world_models.trainer import EPISODE_START
 
 ROLLOUTS = ("branch", "episode")
 STOPPING_RULES = ("fixed", "metrpo")
@@ -202,7 +203,7 @@ class Imagination:
         return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts))
 
     def _start_sampler(self, data: TensorDictBase, epoch: int):
-        pool = data if self.settings.rollout == "branch" else data[data.get("episode_start")]
+        pool = data if self.settings.rollout == "branch" else data[data.get(EPISODE_START)]
         window = self.settings.start_epochs
         if window is not None and COLLECTED_IN in pool.keys():  # (a buffer from before the key: all of it)
             pool = pool[pool.get(COLLECTED_IN) > epoch - window]

@@ -15,6 +15,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from unipolicy_rl.world_models.trainer import EPISODE_START
+
 COLLECTED_IN = "collected_in"  # the real epoch a buffered transition came from (1 = the first)
 
 StateView = Callable[[torch.Tensor], torch.Tensor]
@@ -42,7 +44,7 @@ def transitions(batch: TensorDictBase, state_of: StateView, memory_of: MemoryOf 
             "action": batch.get("action").clamp(-1.0, 1.0),
             "design": batch.get("design"),
             "next_state": next_state,
-            "episode_start": start,
+            EPISODE_START: start,
         },
         batch_size=batch.batch_size,
     )

@@ -8,6 +8,7 @@ import torch
 
 from unipolicy_rl.polynomial_chaos.basis import Basis, UniformInputs
 from unipolicy_rl.polynomial_chaos.regression import FitDiagnostics, least_squares
+from unipolicy_rl.polynomial_chaos.sparse import SparseFit, sparse_least_squares
 
 REDUCTIONS = ("projection", "variance")
 
@@ -75,6 +76,30 @@ class PolynomialChaos:
                                                   dropped=dropped if dropped.any() else None)
         diagnostics.constant_inputs = tuple(int(j) for j in constant.reshape(-1, inputs.dimension).any(0).nonzero())
         return cls(inputs, basis, coefficients, diagnostics)
+
+    @classmethod
+    def fit_sparse(cls, x: torch.Tensor, y: torch.Tensor, low: Sequence[float] | torch.Tensor,
+                   high: Sequence[float] | torch.Tensor, order: int, truncation: str = "hyperbolic", q: float = 0.5,
+                   max_interaction: int | None = 2, weights: torch.Tensor | None = None, max_terms: int | None = None,
+                   patience: int = 10, tolerance: float = 0.0) -> tuple[PolynomialChaos, SparseFit]:
+        """Adaptive sparse fit (:func:`~unipolicy_rl.polynomial_chaos.sparse.sparse_least_squares`):
+        each output keeps the terms of the candidate basis (``order``, ``truncation``, ``q``,
+        ``max_interaction``) that its corrected leave-one-out error chooses; the others are zero,
+        so the moments and sensitivities read from the coefficients as for any expansion.
+
+        Terms of an input that never varies over a problem's samples are no candidates (their
+        columns repeat lower terms'). Unlike :meth:`fit`, fewer samples than candidate terms is
+        no error: the path stops one term short of the samples. Returns the expansion and the
+        selection's record (terms, leave-one-out errors along the path)."""
+        inputs = UniformInputs(low, high)
+        basis = Basis.create(inputs.dimension, order, truncation, q, max_interaction)
+        design = basis(inputs.to_unit(x))
+        constant = constant_inputs(x, weights)
+        involves = (basis.indices > 0).to(constant.device)
+        candidates = ~(constant.unsqueeze(-2) & involves).any(-1)  # [..., terms]
+        fit = sparse_least_squares(design, y.to(design.dtype), weights, candidates, max_terms, patience,
+                                   tolerance)
+        return cls(inputs, basis, fit.coefficients.to(design.dtype)), fit
 
     def __call__(self, x: torch.Tensor, clamp: bool = False) -> torch.Tensor:
         """``[..., n, outputs]`` at ``x [..., n, d]`` (leading dims broadcast against the coefficients')."""

@@ -10,7 +10,7 @@ from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 from unipolicy_rl.world_models.ensemble import CellEnsemble, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.pce import PCEDynamics, ThesisPCEDynamics
+from unipolicy_rl.world_models.pce import PCEDynamics, SparsePCEDynamics, ThesisPCEDynamics
 from unipolicy_rl.world_models.trainer import ClosedFormTrainer, FitReport, ModelTrainer, split_transitions
 
 __all__ = [
@@ -23,6 +23,7 @@ __all__ = [
     "ModelTrainer",
     "NeuralDynamics",
     "PCEDynamics",
+    "SparsePCEDynamics",
     "StateLayout",
     "ThesisPCEDynamics",
     "make_world_model",

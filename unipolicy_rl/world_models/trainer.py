@@ -25,6 +25,8 @@ from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 
 # Keys of a transition batch (one real step each), as the replay buffer stores them.
 TRANSITION_KEYS = ("state", "action", "design", "next_state")
+# Marks a transition that began an episode (the buffer keeps each epoch's episodes whole and in order).
+EPISODE_START = "episode_start"
 
 
 @dataclass

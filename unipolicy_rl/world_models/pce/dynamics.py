@@ -179,66 +179,92 @@ class PCEDynamics(nn.Module):
         """Fits in place on ``transitions`` (keys :data:`~unipolicy_rl.world_models.trainer.TRANSITION_KEYS`):
         rows ``train`` to fit, rows ``validation`` to score (see the class docstring, "Fit")."""
         started = time.perf_counter()
-        device = self.device
-        train, validation = train.to(device), validation.to(device)
-        state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
-        inputs, targets = self.inputs(state, action, design), self.targets(state, next_state)
-        constant = inputs[train].amax(0) <= inputs[train].amin(0)
-        candidates = (~(self.basis.indices[:, constant.cpu()] > 0).any(1)).nonzero().squeeze(1).to(device)
-        terms = min(len(candidates), int(len(train) / oversampling))
+        train, validation = train.to(self.device), validation.to(self.device)
+        inputs, targets, next_state = self.regression_data(transitions)
+        candidates = self.candidates(inputs[train])
+        terms = min(int(candidates.sum()), int(len(train) / oversampling))
         if terms < 1:
             raise ValueError(f"need at least {oversampling} training transitions per PCE term, got {len(train)}")
-        active = candidates[:terms]  # in order of total degree: the constant, the linear terms, ...
-        self.set_ranges(inputs[train])
-        low, high = targets[train].amin(0), targets[train].amax(0)
+        active = candidates.nonzero().squeeze(1)[:terms]  # by total degree: the constant, the linear terms, ...
+        self.set_data_ranges(inputs[train], targets[train], next_state[train])
+        # Poisson(1) bootstrap weights; member 0 fits the plain sample.
+        weights = torch.poisson(torch.ones(self.members, len(train)), generator=generator).to(self.device)
+        weights[0] = 1.0
+        gram, moment, square = self.normal_equations(inputs[train], targets[train], weights, active)
+        samples = (weights > 0).sum(1)
+        # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
+        ridge = self.ridge * weights.sum(1).reshape(-1, 1, 1)
+        gram = gram + ridge * torch.eye(terms, device=self.device)
+        coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
+        if diagnostics.fallbacks:
+            raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
+                                     f"raise world_model.model.ridge or lower the order")
+        self.coefficients.zero_()
+        self.coefficients[:, active] = coefficients.float()
+        self.fitted_terms.fill_(terms)
+        self.residual_std.copy_(diagnostics.residual_rms)
+        error = self.validation_error(inputs[validation], targets[validation], targets[train])
+        scale = targets[train].var(0, correction=0).clamp_min(1e-12)
+        train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
+        return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
+                         extras={"solve_fallbacks": 0})
+
+    # -- the parts of a fit, shared with the sparse PCE -------------------------------------
+    def regression_data(self, transitions: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(inputs, targets, next states) of every transition, on the model's device."""
+        state, action, design, next_state = (transitions.get(key).float().to(self.device) for key in TRANSITION_KEYS)
+        return self.inputs(state, action, design), self.targets(state, next_state), next_state
+
+    def candidates(self, inputs: torch.Tensor) -> torch.Tensor:
+        """``[terms]`` (bool): the terms of inputs that vary in the training data. An input that
+        does not (a locked joint's angle and rate) has constant columns, copies of the intercept."""
+        constant = inputs.amax(0) <= inputs.amin(0)
+        return ~(self.basis.indices[:, constant.cpu()] > 0).any(1).to(self.device)
+
+    @torch.no_grad()
+    def set_data_ranges(self, inputs: torch.Tensor, targets: torch.Tensor, next_state: torch.Tensor) -> None:
+        """The input ranges and the clamps on predicted changes and velocities, from the training rows."""
+        self.set_ranges(inputs)
+        low, high = targets.amin(0), targets.amax(0)
         self.change_low.copy_(low - self.margin * (high - low))
         self.change_high.copy_(high + self.margin * (high - low))
-        velocities = torch.tensor(self.layout.velocity_columns, dtype=torch.long, device=device)
-        low, high = next_state[train][:, velocities].amin(0), next_state[train][:, velocities].amax(0)
+        velocities = torch.tensor(self.layout.velocity_columns, dtype=torch.long, device=self.device)
+        low, high = next_state[:, velocities].amin(0), next_state[:, velocities].amax(0)
         self.state_low[velocities] = low - self.margin * (high - low)
         self.state_high[velocities] = high + self.margin * (high - low)
-        # Poisson(1) bootstrap weights; member 0 fits the plain sample.
-        weights = torch.poisson(torch.ones(self.members, len(train)), generator=generator).to(device)
-        weights[0] = 1.0
-        outputs = targets.shape[-1]
-        # Accumulated in float64: near the data's limit (2 samples per term, a bootstrap member
-        # sees about 63% of them) float32 rounding in the sums outweighs the ridge and the Gram
-        # matrix loses its positive definiteness.
-        gram = torch.zeros(self.members, terms, terms, device=device, dtype=torch.float64)
-        moment = torch.zeros(self.members, terms, outputs, device=device, dtype=torch.float64)
-        square = torch.zeros(self.members, outputs, device=device, dtype=torch.float64)
-        for rows in torch.arange(len(train), device=device).split(self.chunk_size):
+
+    def normal_equations(self, inputs: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor,
+                         active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each member's ``X^T W X`` ``[members, terms, terms]``, ``X^T W Y`` and ``sum w y^2`` over the
+        ``active`` terms, accumulated over row chunks (the design matrix is never held whole).
+
+        Accumulated in float64: near the data's limit (2 samples per term, a bootstrap member
+        sees about 63% of them) float32 rounding in the sums outweighs the ridge and the Gram
+        matrix loses its positive definiteness."""
+        terms, outputs = len(active), targets.shape[-1]
+        gram = torch.zeros(self.members, terms, terms, device=self.device, dtype=torch.float64)
+        moment = torch.zeros(self.members, terms, outputs, device=self.device, dtype=torch.float64)
+        square = torch.zeros(self.members, outputs, device=self.device, dtype=torch.float64)
+        for rows in torch.arange(len(inputs), device=self.device).split(self.chunk_size):
             # Terms first ([terms, rows]), as the basis builds it: selecting terms copies whole rows.
-            xt = self.design_matrix(inputs[train[rows]]).transpose(-1, -2)[active].double()
-            y = targets[train[rows]].double()
+            xt = self.design_matrix(inputs[rows]).transpose(-1, -2)[active].double()
+            y = targets[rows].double()
             w = weights[:, rows].double()
             weighted = xt * w.unsqueeze(1)  # [members, terms, rows]
             gram += weighted @ xt.transpose(-1, -2)
             moment += weighted @ y
             square += w @ y.pow(2)
-        samples = (weights > 0).sum(1)
-        # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
-        ridge = self.ridge * weights.sum(1).reshape(-1, 1, 1)
-        gram = gram + ridge * torch.eye(terms, device=device)
-        coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
-        if diagnostics.fallbacks:
-            raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
-                                     f"raise world_model.model.ridge or lower the order")
-        coefficients = coefficients.float()
-        self.coefficients.zero_()
-        self.coefficients[:, active] = coefficients
-        self.fitted_terms.fill_(terms)
-        self.residual_std.copy_(diagnostics.residual_rms)
-        # ---- validation: standardised MSE per member
-        x = self.design_matrix(inputs[validation])[:, active]
-        predicted = (x @ coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, outputs))
-        truth = targets[validation].unsqueeze(1)
-        scale = targets[train].var(0, correction=0).clamp_min(1e-12)
-        error = ((predicted - truth).pow(2) / scale).mean(dim=(0, 2))
-        error = torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf)).cpu()
-        train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
-        return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
-                         extras={"solve_fallbacks": 0})
+        return gram, moment, square
+
+    def validation_error(self, inputs: torch.Tensor, targets: torch.Tensor,
+                         train_targets: torch.Tensor) -> torch.Tensor:
+        """Each member's standardised MSE on held-out rows ``[members]`` (CPU; inf where not finite):
+        the mean over outputs of the MSE divided by the output's training variance."""
+        x = self.design_matrix(inputs)
+        predicted = (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
+        scale = train_targets.var(0, correction=0).clamp_min(1e-12)
+        error = ((predicted - targets.unsqueeze(1)).pow(2) / scale).mean(dim=(0, 2))
+        return torch.where(torch.isfinite(error), error, torch.full_like(error, math.inf)).cpu()
 
 
 def drop_unused_standardizers(state_dict, prefix, *args) -> None:
