@@ -3,7 +3,7 @@
 import pytest
 import torch
 from tensordict import TensorDict
-from test_world_models import THESIS_FROM_FULL, TOY, one_step_r2, toy_transitions
+from test_world_models import THESIS_FROM_FULL, TOY, one_step_r2, real_transitions, toy_transitions
 from torchrl.envs.utils import check_env_specs
 
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
@@ -206,13 +206,7 @@ def test_bootstrap_members_resample_whole_episodes_and_choose_their_own_terms_on
 
 
 def test_the_sparse_pces_imagined_env_passes_torchrls_checks():
-    torch.manual_seed(0)
-    env = BatchedWalkerEnv(4, full_state=True)
-    env.set_seed(0)
-    rollout = env.rollout(30)
-    env.close()
-    data = TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
-                       "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
+    data = real_transitions()
     model = SparsePCEDynamics(THESIS_FROM_FULL, 4, order=3, members=2, max_terms=20)
     ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
     assert int(model.fitted_terms) >= 1

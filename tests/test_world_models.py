@@ -181,14 +181,19 @@ def test_bad_model_settings_name_the_value(factory, match):
         factory()
 
 
-def _trained_model():
+def real_transitions() -> TensorDict:
+    """120 real transitions (4 robots, 30 random steps, seed 0) with the full state."""
     torch.manual_seed(0)
     env = BatchedWalkerEnv(4, full_state=True)
     env.set_seed(0)
     rollout = env.rollout(30)
     env.close()
-    data = TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
+    return TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
                        "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
+
+
+def _trained_model():
+    data = real_transitions()
     model = GaussianEnsemble(THESIS_FROM_FULL, 4, members=3, elites=2, hidden=(32,))
     ModelTrainer(max_epochs=3).fit(model, data, torch.Generator().manual_seed(0))
     return model, data
