@@ -45,6 +45,7 @@ from unipolicy_rl.training.progress import (
     naming_the_checkpoint_on_stall,
 )
 from unipolicy_rl.validation import validate_config
+from unipolicy_rl.world_models.fresh_error import fresh_error
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
@@ -91,7 +92,11 @@ def main(cfg: DictConfig) -> dict:
             metrics.update(real.metrics())
             if world is not None:
                 # ---- Model training on the replay buffer of real transitions
-                world.buffer.extend(batch, epoch)
+                # (what the model the policy last trained on gets wrong on the states it now visits)
+                fitted_before = len(world.buffer) > 0
+                new_transitions = world.buffer.extend(batch, epoch)
+                if fitted_before:
+                    metrics.update(fresh_error(world.model, new_transitions))
                 fit = world.trainer.fit(world.model, world.buffer.contents(), reseed(cfg.seed, epoch, MODEL_FIT))
                 metrics.update(fit.as_metrics())
                 # ---- Policy training on imagined branches, until the stopping rule says stop

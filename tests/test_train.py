@@ -241,6 +241,8 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     assert [row["real_env_steps"] for row in real] == ["20.0", "40.0", "60.0"]
     assert real[0]["train/episode_reward"] and not imagined[0]["train/episode_reward"]
     assert imagined[0]["imagined/reward_per_step"] and real[0]["model/validation_mse"]
+    # The model's error on each epoch's new states is measured before it fits them: from the second epoch on.
+    assert not real[0]["model/fresh_error"] and all(float(row["model/fresh_error"]) > 0 for row in real[1:])
     assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every_steps=1
     # The run is named for what ran: the design, the world model and the algorithm.
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()

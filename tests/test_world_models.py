@@ -26,6 +26,7 @@ from unipolicy_rl.world_models import (
     StateLayout,
     make_world_model,
 )
+from unipolicy_rl.world_models.fresh_error import fresh_error
 
 THESIS_FROM_FULL = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
 # One body (position and velocity xyz), no joints: small enough to know its dynamics.
@@ -454,3 +455,49 @@ def test_a_row_assigned_a_member_keeps_it_after_its_fault():
     rollout = env.rollout(4, make_actor(18, 4), break_when_any_done=False)
     assert rollout["next", "physics_fault"][1].all() and not rollout["next", "physics_fault"][[0, 2]].any()
     assert (rollout["member"].squeeze(-1) == members.unsqueeze(-1)).all()
+
+
+class _ShiftedMembers:
+    """A Dynamics stand-in: member m predicts the true change plus ``offsets[m]`` (per row)."""
+
+    layout = TOY
+
+    def __init__(self, data: TensorDict, offsets: list[torch.Tensor]) -> None:
+        self.data, self.offsets, self.members = data, offsets, len(offsets)
+
+    device = torch.device("cpu")
+    voting_members = property(lambda self: torch.arange(self.members))
+
+    def predict(self, state, action, design, member, deterministic=False):
+        return self.data["next_state"] + self.offsets[int(member[0])]
+
+
+def test_fresh_error_is_the_unexplained_share_of_the_real_state_change():
+    data = toy_transitions(500, 3)
+    change = data["next_state"] - data["state"]
+    exact = fresh_error(_ShiftedMembers(data, [torch.zeros(500, 6)] * 2), data)
+    assert exact["model/fresh_error"] == pytest.approx(0.0, abs=1e-9)
+    # Predicting the batch's mean change explains none of its variance: exactly 1.
+    to_mean = change.mean(0) - change
+    assert fresh_error(_ShiftedMembers(data, [to_mean, to_mean]), data)["model/fresh_error"] == pytest.approx(1.0)
+    # A model fitted on the toy dynamics explains most of new data; an unfitted one does not.
+    torch.manual_seed(0)
+    model = GaussianEnsemble(TOY, action_dim=2, members=3, elites=2, hidden=(64, 64))
+    unfitted = fresh_error(model, data)["model/fresh_error"]
+    ModelTrainer(max_epochs=40, patience=5, batch_size=128).fit(model, toy_transitions(4000, 0),
+                                                                torch.Generator().manual_seed(0))
+    fitted = fresh_error(model, data)["model/fresh_error"]
+    assert fitted < 0.1 and unfitted > 10 * fitted, (fitted, unfitted)
+
+
+def test_fresh_spread_rank_says_whether_disagreement_tracks_the_error():
+    data = toy_transitions(300, 4)
+    size = torch.linspace(0.01, 1.0, 300).unsqueeze(-1).expand(300, 6)
+    # Members {truth + 2e, truth}: their mean is off by e and their spread is |e|: it tracks the error.
+    tracking = fresh_error(_ShiftedMembers(data, [2 * size, torch.zeros(300, 6)]), data)
+    assert tracking["model/fresh_spread_rank"] == pytest.approx(1.0)
+    # Members that agree most where their mean is most wrong: the spread misleads.
+    misleading = _ShiftedMembers(data, [size + (1.01 - size), size - (1.01 - size)])
+    assert fresh_error(misleading, data)["model/fresh_spread_rank"] == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="at least 2 transitions"):
+        fresh_error(_ShiftedMembers(data[:1], [torch.zeros(1, 6)]), data[:1])

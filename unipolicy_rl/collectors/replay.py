@@ -69,12 +69,13 @@ class TransitionBuffer:
     def __len__(self) -> int:
         return len(self.buffer)
 
-    def extend(self, batch: TensorDictBase, epoch: int) -> None:
-        """Adds a real epoch's batch, each row tagged with ``epoch``."""
+    def extend(self, batch: TensorDictBase, epoch: int) -> TensorDict:
+        """Adds a real epoch's batch, each row tagged with ``epoch``; returns the rows added."""
         rows = transitions(batch, self.state_of, self.memory_of)
         if len(self.buffer) == 0 or COLLECTED_IN in self.buffer[:1].keys():  # (not into an older run's buffer)
             rows.set(COLLECTED_IN, torch.full(rows.batch_size, epoch, dtype=torch.long))
         self.buffer.extend(rows)
+        return rows
 
     def contents(self) -> TensorDictBase:
         """Every buffered transition, oldest first until the buffer wraps (``[N]``)."""

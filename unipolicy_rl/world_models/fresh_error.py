@@ -1,0 +1,78 @@
+"""How wrong the world model is on the states the current policy just visited, before it fits them.
+
+A fit's validation error is measured on a random share of the buffer it trains on: states of
+every past policy, most of which the model has already seen the neighbours of. The question a
+model-based run needs answered is another one: on the states the *current* policy reaches (the
+ones its imagined updates are about), how good was the model it trained on? The epoch's new real
+transitions answer it exactly, once, before they join the buffer and the fit: they are held out
+from that model by construction.
+
+Two figures, for any :class:`~unipolicy_rl.world_models.Dynamics`:
+
+* ``fresh_error``: the share of the variance of the real one-step state change the model's mean
+  prediction leaves unexplained, averaged over the state's outputs (0: exact; 1: no better than
+  predicting the batch's mean change). Unit-free, so models, outputs and epochs compare.
+* ``fresh_spread_rank``: the rank correlation, over the new transitions, between the members'
+  disagreement and the error of their mean: whether the spread the model reports tracks its
+  actual error there (what a cut or a stopping rule on disagreement relies on). NaN with a
+  single member.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from unipolicy_rl.world_models.dynamics import Dynamics
+
+# Outputs whose real change varies less than this (in their own units, squared) over the batch
+# carry no signal to explain (a joint locked at its limit, a constant memory column).
+MIN_VARIANCE = 1e-10
+
+
+def rank_correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Spearman's rank correlation of two 1-D tensors (ties broken by order)."""
+    if a.numel() < 2:
+        return float("nan")
+    ranks = [torch.argsort(torch.argsort(v)).double() for v in (a, b)]
+    ranks = [r - r.mean() for r in ranks]
+    denominator = (ranks[0].square().sum() * ranks[1].square().sum()).sqrt()
+    return float((ranks[0] * ranks[1]).sum() / denominator) if denominator > 0 else float("nan")
+
+
+@torch.no_grad()
+def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "model/") -> dict[str, float]:
+    """``{prefix}fresh_error`` and ``{prefix}fresh_spread_rank`` of ``model`` on ``transitions``.
+
+    ``transitions`` are rows in the model's view (keys ``state``, ``action``, ``design``,
+    ``next_state``: what :class:`~unipolicy_rl.collectors.replay.TransitionBuffer` stores) that the
+    model was not fitted on. Every voting member predicts every row without its noise; a model
+    whose members are design cells (no voters) predicts each row with the member that owns it.
+    """
+    rows = transitions.reshape(-1)
+    if rows.batch_size[0] < 2:
+        raise ValueError(f"need at least 2 transitions to measure a model's error, got {rows.batch_size[0]}")
+    device = model.device
+    state, action, design, next_state = (rows.get(key).float().to(device)
+                                         for key in ("state", "action", "design", "next_state"))
+    n = state.shape[0]
+    voters = model.voting_members
+    members = ([torch.full((n,), int(m), dtype=torch.long, device=device) for m in voters.tolist()]
+               if voters is not None else [model.draw_members(design).to(device)])
+    predictions = torch.stack([model.predict(state, action, design, member, deterministic=True) - state
+                               for member in members])  # [members, n, outputs]
+    change = next_state - state
+    variance = change.var(0, correction=0)
+    signal = variance > MIN_VARIANCE
+    if not signal.any():
+        raise ValueError("the real state changes do not vary over these transitions: there is nothing to explain")
+    mean_prediction = predictions.mean(0)
+    unexplained = (mean_prediction - change).square().mean(0)[signal] / variance[signal]
+    scale = variance[signal].sqrt()
+    error_per_row = ((mean_prediction - change)[:, signal] / scale).square().mean(1)
+    spread_per_row = (predictions[:, :, signal].std(0) / scale).mean(1) if len(members) > 1 else None
+    return {
+        f"{prefix}fresh_error": float(unexplained.mean()),
+        f"{prefix}fresh_spread_rank": (rank_correlation(spread_per_row, error_per_row) if spread_per_row is not None
+                                       else float("nan")),
+    }
