@@ -7,9 +7,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
+from unipolicy_rl.collectors import RealEpochCollector
 from unipolicy_rl.factories import make_collector
 from unipolicy_rl.observation_statistics import MIN_SCALE, ObservationStatistics, refresh_normalizer
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_actor_critic, make_collecting_policy, make_observation_norm
+from unipolicy_rl.validation import validate_config
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -80,10 +82,10 @@ def test_an_unknown_refresh_mode_is_refused_by_name():
         refresh_normalizer(ObservationStatistics(2), normalizer, (), "rescale")
 
 
-def tiny_config(workers: int):
+def tiny_config(workers: int, *overrides: str):
     with initialize_config_dir(str(CONF), version_base="1.3"):
         return compose("config", overrides=[f"workers={workers}", f"episodes_per_epoch={2 * workers}",
-                                            "robot.episode_length=5"])
+                                            "robot.episode_length=5", *overrides])
 
 
 def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
@@ -113,3 +115,45 @@ def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
         torch.testing.assert_close(second[NORMALIZED_OBSERVATION], expected)
     finally:
         collector.shutdown()
+
+
+def test_ray_workers_collect_reseeded_epochs_with_the_statistics_the_trainer_sends():
+    """collector.backend=ray: two Ray actors on a local cluster step the robots. A batch is one
+    epoch of every robot, shaped as the worker processes' are; reseeding repeats an epoch exactly
+    (robots and action noise); new statistics reach the actors with the weights; and shutting
+    the collector down stops the cluster it started."""
+    ray = pytest.importorskip("ray")
+    cfg = tiny_config(2, "collector.backend=ray")
+    actor, _ = make_actor_critic(cfg, 18, 4)
+    normalizer = make_observation_norm(18)
+    collector = RealEpochCollector(make_collector(cfg, make_collecting_policy(normalizer, actor), epochs=3),
+                                   seed=7, epochs=3, frames_per_batch=20)
+    try:
+        batches = iter(collector.collector)
+        collector._restart_randomness(0)
+        first = next(batches)
+        assert first.shape == (2, 2, 5)  # workers x robots each x steps
+        done = first["next", "done"].squeeze(-1)
+        assert done[..., -1].all() and not done[..., :-1].any()
+        collector._restart_randomness(0)
+        again = next(batches)
+        for key in ("observation", "action", ("next", "observation"), "design"):
+            torch.testing.assert_close(again[key], first[key], rtol=0, atol=0)
+        assert not torch.equal(first["action"][0], first["action"][1])  # the workers draw different noise
+        statistics = ObservationStatistics(18)
+        statistics.update(first["observation"])
+        statistics.copy_to(normalizer)
+        collector.update_policy_weights_()
+        collector._restart_randomness(1)
+        second = next(batches)
+        expected = (second["observation"] - statistics.loc) / statistics.scale
+        torch.testing.assert_close(second[NORMALIZED_OBSERVATION], expected)
+    finally:
+        collector.shutdown()
+    assert not ray.is_initialized()
+
+
+def test_an_unknown_collector_backend_is_refused_by_name():
+    cfg = tiny_config(1, "collector.backend=slurm")
+    with pytest.raises(ValueError, match="collector.backend.*slurm"):
+        validate_config(cfg)

@@ -28,6 +28,7 @@ from unipolicy_rl.collectors import (
     TransitionBuffer,
     truncate_last_step,
 )
+from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.config import env_kwargs
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
@@ -69,7 +70,9 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
 
     ``workers`` processes each step their share of the robots *and* run the policy on them
     (TorchRL's ``MultiSyncCollector``, weights shared through memory), so the trainer does no
-    per-step work; ``workers=1`` collects in this process.
+    per-step work; ``workers=1`` collects in this process. With ``collector.backend=ray`` the
+    workers are Ray actors instead (TorchRL's ``RayCollector``), on a local cluster or on the one
+    at ``collector.ray_address``.
 
     An epoch is one episode of every robot. The collector's post-processing marks its last
     step truncated and the trainer resets every robot at the start of the next epoch, so
@@ -85,6 +88,11 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
     common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
               "postproc": truncate_last_step, "auto_register_policy_transforms": False}
+    if cfg.collector.backend == "ray":  # one Collector per Ray actor (TorchRL's RayCollector)
+        make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
+        return make_epoch_ray_collector([make_worker_env] * cfg.workers, policy, frames_per_batch=frames_per_batch,
+                                        total_frames=common["total_frames"], postproc=truncate_last_step,
+                                        address=cfg.collector.ray_address)
     if cfg.workers == 1:
         return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
     make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)

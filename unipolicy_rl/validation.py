@@ -22,6 +22,8 @@ from collections.abc import Callable
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
+from unipolicy_rl.collectors.distributed import require_ray
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
@@ -82,6 +84,7 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "epochs": POSITIVE,
     "episodes_per_epoch": POSITIVE,
     "workers": POSITIVE,
+    "collector.backend": _one_of(set(COLLECTOR_BACKENDS)),
     "checkpoint_every": POSITIVE,
     "progress_bar": _flag,
     "source.kind": _registered("SOURCE_KINDS"),
@@ -180,6 +183,11 @@ def validate_config(cfg: DictConfig) -> None:
     _built("robot.reward", lambda: instantiate(cfg.robot.reward))
     _built("algo", lambda: learner_settings(cfg))
     _built("device", lambda: resolve_device(cfg.device))
+    if cfg.collector.backend == "ray":
+        try:
+            require_ray()
+        except ImportError as error:
+            raise ValueError(f"collector.backend=ray: {error}") from None
     if cfg.source.kind == "model":  # its world_model and imagination groups are there (JOINT_RULES)
         _built("world_model.trainer", lambda: instantiate(cfg.world_model.trainer))
         imagination = _built("imagination", lambda: instantiate(cfg.imagination))
