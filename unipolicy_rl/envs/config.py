@@ -44,7 +44,9 @@ def grammar_morphologies(cfg: DictConfig) -> tuple[MorphologySplit, tuple[Morpho
     side = cfg.robot.morphologies
     if side not in GRAMMAR_SIDES:
         raise ValueError(f"robot.morphologies must be one of {GRAMMAR_SIDES}, got {side!r}")
-    split = instantiate(cfg.robot.split, _convert_="all")
+    # Built as a partial and called here, so a bad split raises its own ValueError naming the
+    # value rather than Hydra's wrapper.
+    split = instantiate(cfg.robot.split, _convert_="all", _partial_=True)()
     chosen = {"train": split.train, "held_out": split.held_out, "all": split.train + split.held_out}[side]
     return split, chosen
 
