@@ -61,7 +61,8 @@ def main() -> None:
     for _ in range(args.repeats):
         for name, make in variants.items():
             rates[name].append(robot_steps_per_second(make(), args.steps))
-    print(f"{args.robots} robots, {args.steps} steps, {args.repeats} repeats; robot-steps/s (median), ratio to vertebrate")
+    print(f"{args.robots} robots, {args.steps} steps, {args.repeats} repeats; "
+          "robot-steps/s (median), ratio to vertebrate")
     for name, values in rates.items():
         ratio = statistics.median(v / base for v, base in zip(values, rates["vertebrate"], strict=True))
         print(f"{name:24s} {statistics.median(values):8.0f} {ratio:6.2f}")

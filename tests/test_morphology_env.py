@@ -2,7 +2,6 @@
 
 from pathlib import Path
 
-import numpy as np
 import pybullet
 import pytest
 import torch
@@ -77,7 +76,8 @@ def test_masks_and_parents_match_each_robots_links_and_actuated_joints():
         robot = describe(morphology.derivation())  # every hinge driven, as the env by default
         n = len(robot.links)
         assert td[TOKEN_MASK][i].tolist() == [True] * n + [False] * (16 - n)
-        parents = [-1] + [robot.link_index(j.parent) for j in sorted(robot.joints, key=lambda j: robot.link_index(j.child))]
+        parent_of = {robot.link_index(joint.child): robot.link_index(joint.parent) for joint in robot.joints}
+        parents = [parent_of.get(index, -1) for index in range(n)]
         assert td[TOKEN_PARENT][i].tolist() == parents + [-1] * (16 - n)
         driven = {robot.link_index(joint.child) for joint in robot.actuated_joints}
         assert torch.nonzero(td[ACTION_MASK][i]).flatten().tolist() == sorted(driven)

@@ -13,7 +13,6 @@ from omegaconf import DictConfig
 from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
 from unipolicy_rl.robots.grammar import Morphology, MorphologySplit
 
-
 GRAMMAR_SIDES = ("train", "held_out", "all")
 
 

@@ -26,7 +26,7 @@ from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, healthy_rows, joint_targets
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKEN_PARENT, TOKEN_SIZE, TOKENS
 from unipolicy_rl.robots import RobotDescription
-from unipolicy_rl.robots.grammar import RULES, Morphology, PartKinds, describe, derive, part_kinds, split_morphologies
+from unipolicy_rl.robots.grammar import RULES, Morphology, PartKinds, derive, describe, part_kinds, split_morphologies
 from unipolicy_rl.robots.grammar.derivation import RobotGraph
 
 # How a robot's morphology is drawn at each reset: independently and uniformly, or "balanced":
@@ -125,7 +125,8 @@ class MorphologyWalkerEnv(EnvBase):
         self.episode_length = None if episode_length is None else int(episode_length)
         self.sampling = sampling
         self.design_in_tokens = design_in_tokens
-        self._morphs = [self._prepare(index, morphology, driven_joints) for index, morphology in enumerate(morphologies)]
+        self._morphs = [self._prepare(index, morphology, driven_joints)
+                        for index, morphology in enumerate(morphologies)]
         self.simulations = [MorphologySimulation(self.physics) for _ in range(num_robots)]
 
         n, links = num_robots, self.max_links
