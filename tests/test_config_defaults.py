@@ -32,6 +32,8 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.envs.RobotSettings": ("robot/vertebrate.yaml", "settings"),
     "unipolicy_rl.envs.PhysicsSettings": ("robot/vertebrate.yaml", "physics"),
     "unipolicy_rl.envs.RewardWeights": ("robot/vertebrate.yaml", "reward"),
+    "unipolicy_rl.robots.grammar.split_morphologies": ("robot/grammar.yaml", "split"),
+    "unipolicy_rl.robots.grammar.SizeLimits": ("robot/grammar.yaml", "split.held_out_limits"),
     "unipolicy_rl.envs.DesignDistribution": ("design/se.yaml", ""),
     "unipolicy_rl.envs.DesignDistribution.fixed": ("design/fixed.yaml", ""),  # no defaults: both are required
     "unipolicy_rl.collectors.ImaginationSettings": ("imagination/branch.yaml", ""),
@@ -49,6 +51,9 @@ BASES: dict[str, tuple[str, str]] = {
 # which it differs from the class's defaults (anything else it sets must equal the default).
 VARIANTS: dict[tuple[str, str], dict[str, object]] = {
     ("design/de.yaml", ""): {"length_range": [0.175, 0.175], "density_range": [0.5, 0.5]},  # DE: the SE centre
+    ("robot/grammar.yaml", "split.train_limits"): {"segments": [2, 4], "leg_pairs": [1, 2]},  # split's TRAIN_LIMITS
+    ("robot/grammar.yaml", "physics"): {},  # the same physics and reward as the vertebrate's
+    ("robot/grammar.yaml", "reward"): {},
     ("world_model/moe_thesis.yaml", "trainer"): {},
     ("world_model/pce_thesis.yaml", "trainer"): {"oversampling": 20.0},  # the thesis PCE's correlated samples
     ("world_model/pce_sparse.yaml", "trainer"): {},

@@ -21,6 +21,7 @@ from unipolicy_rl.robots.grammar import (
     derive,
     describe,
     enumerate_morphologies,
+    part_kinds,
     sample_morphology,
     split_morphologies,
     stance,
@@ -207,6 +208,22 @@ def test_sampling_is_seeded_and_covers_the_limits():
     assert {(m.segments, m.leg_pairs) for m in drawn} == {
         (s, p) for s in range(2, 6) for p in range(1, min(3, s) + 1)}
     assert {links for m in drawn for links in m.limb_links} == {1, 2, 3}
+
+
+def test_part_kinds_and_link_counts_follow_the_built_robot():
+    rng = np.random.default_rng(3)
+    limits = SizeLimits(segments=(2, 5), leg_pairs=(1, 3), limb_links=(1, 3))
+    for morphology in [VERTEBRATE, *(sample_morphology(rng, limits) for _ in range(20))]:
+        robot, kinds = describe(morphology.derivation()), part_kinds(morphology.derivation())
+        assert len(kinds.links) == len(robot.links) == morphology.num_links
+        assert len(kinds.joints) == len(robot.joints)
+        for joint, joint_type in zip(robot.joints, kinds.joints, strict=True):
+            assert joint_type in joint.name
+    kinds = part_kinds(VERTEBRATE.derivation())
+    assert kinds.links == ("body",) * 3 + ("limb_mount", "long_limb_link", "long_limb_link") * 4
+    assert kinds.joints[:5] == ("roll", "roll", "mount", "axial_roll", "obtuse_lift")
+    small = SizeLimits(segments=(1, 2), leg_pairs=(0, 1), limb_links=(1, 2))
+    assert small.max_links == max(m.num_links for m in enumerate_morphologies(small)) == 2 + 2 * 3
 
 
 def test_segment_distances_agree_with_a_dense_search():

@@ -1,10 +1,12 @@
-"""Walking environments: gymnasium's ``WalkerEnv``, the batched TorchRL ``BatchedWalkerEnv``, and
-``SleepingParallelEnv`` to spread batches over cores."""
+"""Walking environments: gymnasium's ``WalkerEnv``, the batched TorchRL ``BatchedWalkerEnv``,
+``MorphologyWalkerEnv`` for robots of many grammar morphologies, and ``SleepingParallelEnv`` to
+spread batches over cores."""
 
 import gymnasium
 
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
 from unipolicy_rl.envs.design import Design, DesignDistribution
+from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
 from unipolicy_rl.envs.parallel import SleepingParallelEnv
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
@@ -19,6 +21,7 @@ __all__ = [
     "BatchedWalkerEnv",
     "Design",
     "DesignDistribution",
+    "MorphologyWalkerEnv",
     "PhysicsSettings",
     "RewardWeights",
     "RobotSettings",

@@ -14,7 +14,14 @@ import numpy as np
 import pybullet
 
 from unipolicy_rl.envs.design import Design
-from unipolicy_rl.robots import DEFAULT_ACTUATED, RobotBody, load_robot, standing_height, vertebrate
+from unipolicy_rl.robots import (
+    DEFAULT_ACTUATED,
+    RobotBody,
+    RobotDescription,
+    load_robot,
+    standing_height,
+    vertebrate,
+)
 from unipolicy_rl.robots.urdf import JOINT_RANGE
 
 OBSERVATIONS = ("thesis", "full")
@@ -114,6 +121,43 @@ def healthy_rows(observations):
     return (abs(observations) < EXPLOSION_LIMIT).all(-1)
 
 
+def build_world(client: int, physics: PhysicsSettings, description: RobotDescription, height: float,
+                visuals: bool = False) -> RobotBody:
+    """A fresh world in ``client``: gravity, a plane, and the robot with its base ``height`` (+5 mm)
+    above the ground at the origin, facing +x; every link with the ground's friction.
+
+    A fresh world for every build: Bullet's results depend on the order bodies were added and
+    removed, so rebuilding from scratch makes an episode a function of its robot and actions alone
+    (reproducible after a resume, comparable across runs).
+    """
+    pybullet.resetSimulation(physicsClientId=client)
+    pybullet.setPhysicsEngineParameter(fixedTimeStep=physics.time_step, physicsClientId=client)
+    pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
+    ground = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
+    plane = pybullet.createMultiBody(0.0, ground, physicsClientId=client)
+    pybullet.changeDynamics(plane, -1, lateralFriction=physics.lateral_friction, physicsClientId=client)
+    body = load_robot(client, description, (0.0, 0.0, height + 0.005), math.pi, physics.max_torque, visuals)
+    for link_index in body.link_indices.values():
+        pybullet.changeDynamics(body.body_id, link_index, lateralFriction=physics.lateral_friction,
+                                physicsClientId=client)
+    return body
+
+
+def position_motors(body: RobotBody, physics: PhysicsSettings) -> dict:
+    """Keyword arguments of ``setJointMotorControlArray`` for ``body``'s actuated joints, less the
+    targets: PyBullet's PD position motors with the physics settings' gains and torque limit."""
+    n = len(body.actuated_joint_indices)
+    return {
+        "bodyUniqueId": body.body_id,
+        "jointIndices": body.actuated_joint_indices,
+        "controlMode": pybullet.POSITION_CONTROL,
+        "forces": [physics.max_torque] * n,
+        "positionGains": [physics.position_gain] * n,
+        "velocityGains": [physics.velocity_gain] * n,
+        "physicsClientId": body.client,
+    }
+
+
 class WalkerSimulation:
     """A PyBullet DIRECT client holding a plane and one robot of the current design."""
 
@@ -167,36 +211,12 @@ class WalkerSimulation:
         return self.last_observation.copy()
 
     def _build(self, design: Design) -> None:
-        # A fresh world for every build: Bullet's results depend on the order bodies were
-        # added and removed, so rebuilding from scratch makes an episode a function of its
-        # design and actions alone (reproducible after a resume, comparable across runs).
-        client = self.client
-        pybullet.resetSimulation(physicsClientId=client)
-        pybullet.setPhysicsEngineParameter(fixedTimeStep=self.physics.time_step, physicsClientId=client)
-        pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=client)
-        ground = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
-        plane = pybullet.createMultiBody(0.0, ground, physicsClientId=client)
-        pybullet.changeDynamics(plane, -1, lateralFriction=self.physics.lateral_friction, physicsClientId=client)
         description = self.robot_settings.describe(design)
-        height = standing_height(description) + 0.005
-        self.body = load_robot(self.client, description, (0.0, 0.0, height), math.pi, self.physics.max_torque,
-                               self.visuals)
-        for link_index in self.body.link_indices.values():
-            pybullet.changeDynamics(self.body.body_id, link_index, lateralFriction=self.physics.lateral_friction,
-                                    physicsClientId=self.client)
+        self.body = build_world(self.client, self.physics, description, standing_height(description), self.visuals)
         self.design = design
         observed = self.robot_settings.observed_links if self.observation_kind == "thesis" else self._link_names[1:]
         self._read_links = [self.body.link_index(name) for name in observed]
-        n = self.num_actions
-        self._motor_command = {
-            "bodyUniqueId": self.body.body_id,
-            "jointIndices": self.body.actuated_joint_indices,
-            "controlMode": pybullet.POSITION_CONTROL,
-            "forces": [self.physics.max_torque] * n,
-            "positionGains": [self.physics.position_gain] * n,
-            "velocityGains": [self.physics.velocity_gain] * n,
-            "physicsClientId": self.client,
-        }
+        self._motor_command = position_motors(self.body, self.physics)
         self._built_state: int | None = None
 
     def close(self) -> None:

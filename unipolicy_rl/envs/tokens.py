@@ -16,11 +16,56 @@ Shapes (``*`` is the env's batch shape, ``L`` the padded number of links):
   The action is ``[*, L]``: slot ``i`` drives link ``i``'s parent joint; slots where the mask
   is False (the root, fixed joints, padding) are ignored by the env and must count for nothing
   in a learner's log-probabilities, entropy and KL.
+- ``MORPHOLOGY``: ``[*, 1]`` int64, which robot of the env's morphology set each robot is (an
+  index into it), for evaluation to group by; set it in a reset to force a robot.
+
+A token's features, in :data:`TOKEN_FEATURES` order (``F`` = :data:`TOKEN_SIZE`), world frame
+unless said; the first six are the thesis observation's per-body numbers, so the root token's
+first six are the base's ``x, y, z, x_dot, y_dot, z_dot`` that ``walking_reward`` and
+``forward_displacement`` read (``walking_reward(tokens[..., 0, :])`` is the reward):
+
+- ``x, y, z``: the root: the base's position from where it started (x, y) and its height (z);
+  a link: its centre of mass from the base's.
+- ``vx, vy, vz``: linear velocity of the centre of mass.
+- ``r00 ... r21``: orientation as the first two columns of a rotation matrix (continuous, unlike
+  a quaternion): the root's in the world frame (which holds the base's tilt against gravity),
+  a link's relative to the base (``R_base^T R_link``).
+- ``wx, wy, wz``: angular velocity.
+- ``joint_angle``, ``joint_rate``: of the link's parent joint (rad, rad/s); 0 for the root, a
+  fixed joint and a locked hinge.
+- ``axis_x, axis_y, axis_z``: the parent hinge's axis in the link's frame; 0 where no hinge moves.
+- ``actuated``: 1 where the parent joint is driven (what ``ACTION_MASK`` says).
+- ``kind_<name>``: one-hot of the link's kind, one per ``LINK_KINDS`` entry, in its order.
+- ``length, radius, mass``: the link's size (m, m, kg); by default at the design distribution's
+  mean, not the episode's design, so a policy is not told the uncertain design (as SE).
+
+Padding tokens are all zeros.
 """
 
 from __future__ import annotations
+
+from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
+from unipolicy_rl.robots.grammar.parts import LINK_KINDS
 
 TOKENS = "tokens"
 TOKEN_MASK = "token_mask"
 TOKEN_PARENT = "token_parent"
 ACTION_MASK = "action_mask"
+MORPHOLOGY = "morphology"
+
+TOKEN_FEATURES: tuple[str, ...] = (
+    "x", "y", "z",
+    "vx", "vy", "vz",
+    "r00", "r10", "r20", "r01", "r11", "r21",
+    "wx", "wy", "wz",
+    "joint_angle", "joint_rate",
+    "axis_x", "axis_y", "axis_z",
+    "actuated",
+    *(f"kind_{name}" for name in LINK_KINDS),
+    "length", "radius", "mass",
+)
+TOKEN_SIZE = len(TOKEN_FEATURES)
+FEATURE_INDEX: dict[str, int] = {name: index for index, name in enumerate(TOKEN_FEATURES)}
+
+# The root token is read by the reward as an observation of the thesis layout.
+assert [FEATURE_INDEX[name] for name in ("x", "y", "z", "vx")] == [BASE_X, BASE_Y, BASE_Z, BASE_X_DOT]

@@ -7,7 +7,7 @@ and sampling; :func:`split_morphologies` draws a fixed training / held-out split
 robots that stand. docs/grammar.md walks through it.
 """
 
-from unipolicy_rl.robots.grammar.build import describe
+from unipolicy_rl.robots.grammar.build import PartKinds, describe, part_kinds
 from unipolicy_rl.robots.grammar.derivation import RobotGraph, applicable_rules, apply_rule, derive
 from unipolicy_rl.robots.grammar.morphology import (
     VERTEBRATE,
@@ -32,6 +32,7 @@ __all__ = [
     "LinkKind",
     "Morphology",
     "MorphologySplit",
+    "PartKinds",
     "RobotGraph",
     "Rule",
     "SizeLimits",
@@ -42,6 +43,7 @@ __all__ = [
     "derive",
     "describe",
     "enumerate_morphologies",
+    "part_kinds",
     "rules_for",
     "sample_morphology",
     "split_morphologies",

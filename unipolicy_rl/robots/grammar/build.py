@@ -9,10 +9,11 @@ from head to tail, then each segment's legs, left before right, each leg from it
 from __future__ import annotations
 
 from collections.abc import Collection, Iterable
+from dataclasses import dataclass
 
 from unipolicy_rl.robots.description import Joint, Link, RobotDescription
 from unipolicy_rl.robots.grammar.derivation import GraphEdge, RobotGraph, derive
-from unipolicy_rl.robots.grammar.parts import link_kind
+from unipolicy_rl.robots.grammar.parts import LinkKind, link_kind
 
 BODY = "body"
 
@@ -23,24 +24,31 @@ def _joint(name: str, edge: GraphEdge, parent: str, child: str, mirrored: bool, 
                  actuated=part.kind == "hinge" and actuated(name))
 
 
-def describe(
-    derivation: RobotGraph | Iterable[str],
-    length: float = 0.175,
-    density: float = 0.5,
-    actuated: Collection[str] | None = None,
-    name: str = "grammar_robot",
-) -> RobotDescription:
-    """The robot a derivation (rule names, or the graph they derive) yields at design (``length``, ``density``).
+@dataclass(frozen=True)
+class PartKinds:
+    """What each part of a derived robot is, in :func:`describe`'s order: the :data:`LINK_KINDS`
+    name of each link and the joint type (``roll``, ``obtuse_lift``, ...) of each joint.
 
-    ``actuated`` names the hinges the policy drives; None drives every hinge, as RoboGrammar
-    does. Body segments are ``body_<i>`` joined by ``body_<joint type>_<i>``; leg pair ``k``
-    (counted from the head) has legs ``leg_<k>_left`` and ``leg_<k>_right``, each a
-    ``<leg>_mount`` and links ``<leg>_link_<j>`` on joints ``<leg>_<joint type>_<j>``.
+    A :class:`RobotDescription` keeps only sizes and frames; a policy that reads a robot link by
+    link also wants to know what each link is, and an env that drives some joint types only needs
+    each joint's type.
     """
+
+    links: tuple[str, ...]
+    joints: tuple[str, ...]
+
+
+def _graph(derivation: RobotGraph | Iterable[str]) -> RobotGraph:
     graph = derivation if isinstance(derivation, RobotGraph) else derive(derivation)
     if not graph.is_terminal:
         pending = sorted({graph.label_of(item) for item in graph.nonterminals()})
         raise ValueError(f"the graph still has nonterminals {pending}; derive it to the end first")
+    return graph
+
+
+def _tree(graph: RobotGraph) -> tuple[list[tuple[str, LinkKind]], list[tuple[str, GraphEdge, str, str, bool]]]:
+    """The graph read as a tree: ``(link name, kind)`` per link and ``(joint name, edge, parent,
+    child, mirrored)`` per joint, in the order of the module docstring."""
     (root,) = graph.roots()
 
     spine: list[int] = [root]
@@ -52,12 +60,11 @@ def describe(
         spine_edges.append(onward[0])
         spine.append(graph.edges[onward[0]].child)
 
-    links: list[Link] = []
+    links: list[tuple[str, LinkKind]] = []
     joints: list[tuple[str, GraphEdge, str, str, bool]] = []
 
     def add_link(link_name: str, node: int) -> None:
-        kind = link_kind(graph.nodes[node].link)
-        links.append(Link(link_name, length * kind.length_factor, kind.radius, density * kind.density_factor))
+        links.append((link_name, link_kind(graph.nodes[node].link)))
 
     for index, node in enumerate(spine):
         add_link(f"body_{index}", node)
@@ -86,6 +93,32 @@ def describe(
                 parent_name, below = child_name, limb_edge.child
         if legs:
             pair += 1
+    return links, joints
+
+
+def part_kinds(derivation: RobotGraph | Iterable[str]) -> PartKinds:
+    """The kind of each link and the type of each joint of the robot ``derivation`` yields."""
+    links, joints = _tree(_graph(derivation))
+    return PartKinds(tuple(kind.name for _, kind in links), tuple(edge.joint.name for _, edge, *_ in joints))
+
+
+def describe(
+    derivation: RobotGraph | Iterable[str],
+    length: float = 0.175,
+    density: float = 0.5,
+    actuated: Collection[str] | None = None,
+    name: str = "grammar_robot",
+) -> RobotDescription:
+    """The robot a derivation (rule names, or the graph they derive) yields at design (``length``, ``density``).
+
+    ``actuated`` names the hinges the policy drives; None drives every hinge, as RoboGrammar
+    does. Body segments are ``body_<i>`` joined by ``body_<joint type>_<i>``; leg pair ``k``
+    (counted from the head) has legs ``leg_<k>_left`` and ``leg_<k>_right``, each a
+    ``<leg>_mount`` and links ``<leg>_link_<j>`` on joints ``<leg>_<joint type>_<j>``.
+    """
+    tree_links, joints = _tree(_graph(derivation))
+    links = [Link(link_name, length * kind.length_factor, kind.radius, density * kind.density_factor)
+             for link_name, kind in tree_links]
 
     hinges = [joint_name for joint_name, edge, *_ in joints if edge.joint.kind == "hinge"]
     if actuated is not None:

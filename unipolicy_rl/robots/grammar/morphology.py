@@ -76,6 +76,11 @@ class Morphology:
         """The number of links of each leg pair's legs (mount not counted), head to tail."""
         return tuple(len(limb) for limb in self.limbs if limb)
 
+    @property
+    def num_links(self) -> int:
+        """Links of the robot it derives: the body segments, and per leg its mount and links."""
+        return self.segments + 2 * sum(1 + len(limb) for limb in self.limbs if limb)
+
     def derivation(self) -> tuple[str, ...]:
         """The leftmost derivation: the structure head to tail (each segment, then its legs'
         links), then the joints in the same order."""
@@ -117,6 +122,13 @@ class SizeLimits:
         if self.leg_pairs[0] > self.segments[1]:
             raise ValueError(f"leg_pairs {self.leg_pairs} needs more body segments than segments "
                              f"{self.segments} allows (one leg pair per segment)")
+
+    @property
+    def max_links(self) -> int:
+        """The most links a robot within these limits has (:attr:`Morphology.num_links`): the
+        most segments, as many of them as may carry legs, each leg as long as allowed."""
+        pairs = min(self.leg_pairs[1], self.segments[1])
+        return self.segments[1] + 2 * pairs * (1 + self.limb_links[1])
 
     def admits(self, morphology: Morphology) -> bool:
         return not self.violations(morphology)
