@@ -346,6 +346,11 @@ def test_policy_group_composes_and_builds_each_architecture():
         assert out["action"].shape == (4, 7) and out["state_value"].shape == (4, 1)
         assert (out["action"][~data[ACTION_MASK]] == 0).all()
         assert out["scale"].min().item() == pytest.approx(torch.tensor(cfg.algo.init_log_std).exp().item())
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):  # evaluation: the mean
+            evaluated = actor(make_token_norm(F)(data.clone()))
+        real = data[ACTION_MASK]
+        assert torch.equal(evaluated["action"][real], evaluated["loc"][real])
+        assert (evaluated["action"][~real] == 0).all()
 
 
 @pytest.mark.parametrize(("setting", "value"), [
