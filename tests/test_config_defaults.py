@@ -46,6 +46,7 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.world_models.ClosedFormTrainer": ("world_model/pce.yaml", "trainer"),
     "unipolicy_rl.world_models.ThesisPCEDynamics": ("world_model/pce_thesis.yaml", "model"),
     "unipolicy_rl.world_models.SparsePCEDynamics": ("world_model/pce_sparse.yaml", "model"),
+    "unipolicy_rl.token_networks.TokenTransformerSettings": ("policy/token_transformer.yaml", "network"),
 }
 # Every other node with a ``_target_``: a deliberate choice of the same class, and the values in
 # which it differs from the class's defaults (anything else it sets must equal the default).

@@ -184,7 +184,7 @@ def _upgraded(state: dict) -> dict:
 
 # The settings a checkpoint's weights and model were built for: a resume takes them from the
 # checkpoint. (A dotted key names one setting; a bare group name covers the group.)
-ARCHITECTURE_KEYS = ("algo.name", "algo.actor_hidden", "algo.critic_hidden", "algo.activation", "robot",
+ARCHITECTURE_KEYS = ("algo.name", "algo.actor_hidden", "algo.critic_hidden", "algo.activation", "policy", "robot",
                      "world_model.model", "world_model.model_state")
 
 

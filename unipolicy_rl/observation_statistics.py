@@ -106,21 +106,33 @@ def refresh_normalizer(statistics: ObservationStatistics, normalizer: Observatio
     if mode == "jump":
         return
     new_loc, new_scale = normalizer.loc.detach(), normalizer.scale.detach()
+    for network in networks:
+        reader = _input_reader(network)
+        if isinstance(reader, nn.Linear):
+            reexpress_linear(reader, old_loc, old_scale, new_loc, new_scale)
+        else:
+            reader.reexpress_input(old_loc, old_scale, new_loc, new_scale)
+
+
+def reexpress_linear(layer: nn.Linear, old_loc: torch.Tensor, old_scale: torch.Tensor, new_loc: torch.Tensor,
+                     new_scale: torch.Tensor) -> None:
+    """Rewrites ``layer``, which reads ``(o - old_loc) / old_scale``, to give the same output on
+    ``(o - new_loc) / new_scale``: ``W' = W diag(s1 / s0)``, ``b' = b + W (m1 - m0) / s0``."""
+    if layer.in_features != old_loc.numel():
+        raise ValueError(f"the first layer reads {layer.in_features} inputs, the normaliser {old_loc.numel()}")
     with torch.no_grad():
-        for network in networks:
-            layer = _first_linear(network)
-            if layer.in_features != old_loc.numel():
-                raise ValueError(f"the first layer of {type(network).__name__} reads {layer.in_features} inputs, "
-                                 f"the normaliser {old_loc.numel()}")
-            weight = layer.weight.double()
-            shift = ((new_loc - old_loc) / old_scale).double()
-            if layer.bias is not None:
-                layer.bias.add_((weight @ shift).to(layer.bias.dtype))
-            layer.weight.copy_((weight * (new_scale / old_scale).double()).to(layer.weight.dtype))
+        weight = layer.weight.double()
+        shift = ((new_loc - old_loc) / old_scale).double()
+        if layer.bias is not None:
+            layer.bias.add_((weight @ shift).to(layer.bias.dtype))
+        layer.weight.copy_((weight * (new_scale / old_scale).double()).to(layer.weight.dtype))
 
 
-def _first_linear(network: nn.Module) -> nn.Linear:
+def _input_reader(network: nn.Module):
+    """What reads the normalised input in ``network``: the first submodule that says how to
+    re-express itself (``reexpress_input(old_loc, old_scale, new_loc, new_scale)``, as the token
+    networks of :mod:`unipolicy_rl.token_networks` do), else its first ``nn.Linear``."""
     for module in network.modules():
-        if isinstance(module, nn.Linear):
+        if hasattr(module, "reexpress_input") or isinstance(module, nn.Linear):
             return module
     raise ValueError(f"{type(network).__name__} has no nn.Linear layer to re-express")

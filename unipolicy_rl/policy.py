@@ -1,5 +1,11 @@
 """The policy a run trains and a checkpoint hands over: observation normaliser, then the actor.
 
+``policy.name`` (``conf/policy/``) chooses the architecture: ``mlp``, the flat observation
+through ``algo``'s MLPs (the default, and every run before the group existed); or, for robots of
+any morphology observed as padded link tokens (:mod:`unipolicy_rl.envs.tokens`),
+``token_transformer`` or its baseline ``token_mlp`` (:mod:`unipolicy_rl.token_networks`), built
+by :func:`make_token_actor_critic` behind a :func:`make_token_norm`.
+
 Kept apart from the training stack (collectors, world models, learners), so loading a policy to
 run or evaluate it imports none of them.
 """
@@ -7,13 +13,34 @@ run or evaluate it imports none of them.
 from __future__ import annotations
 
 import torch
-from omegaconf import DictConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs.transforms import ObservationNorm
 
 from unipolicy_rl.networks import make_actor, make_critic, make_tanh_actor
+from unipolicy_rl.token_networks import (
+    make_padded_mlp_actor,
+    make_padded_mlp_critic,
+    make_token_transformer_actor,
+    make_token_transformer_critic,
+)
+from unipolicy_rl.token_statistics import TokenNorm
 
 NORMALIZED_OBSERVATION = "observation_norm"
+NORMALIZED_TOKENS = "tokens_norm"
+# ``policy.name``: what the networks read. ``mlp`` reads the flat ``observation``; the others
+# read link tokens and drive the padded, masked action of unipolicy_rl.envs.tokens.
+FLAT_POLICIES = ("mlp",)
+TOKEN_POLICIES = ("token_transformer", "token_mlp")
+
+
+def policy_architecture(cfg: DictConfig) -> str:
+    """``cfg.policy.name``, ``mlp`` for a config from before the ``policy`` group; unknown names refused."""
+    name = OmegaConf.select(cfg, "policy.name", default="mlp")
+    if name not in FLAT_POLICIES + TOKEN_POLICIES:
+        raise ValueError(f"policy.name must be one of {FLAT_POLICIES + TOKEN_POLICIES}, got {name!r}")
+    return name
 
 
 def make_observation_norm(observation_dim: int, loc: torch.Tensor | None = None,
@@ -34,6 +61,9 @@ def make_policy_actor(cfg: DictConfig, observation_dim: int, action_dim: int) ->
     """The actor ``cfg.algo`` trains, reading the normalised observation: TRPO's Gaussian (its
     std a free parameter), or the off-policy learners' tanh-Gaussian."""
     algo = cfg.algo
+    if (architecture := policy_architecture(cfg)) != "mlp":
+        raise ValueError(f"policy={architecture} reads link tokens, not a flat observation of {observation_dim}: "
+                         "build it with make_token_actor_critic on an env that writes tokens (robot=grammar)")
     if algo.get("name", "trpo") == "trpo":  # (checkpoints from before algo.name are TRPO's)
         return make_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
                           observation_key=NORMALIZED_OBSERVATION)
@@ -47,4 +77,39 @@ def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
     actor = make_policy_actor(cfg, observation_dim, action_dim)
     critic = make_critic(observation_dim, tuple(algo.critic_hidden), algo.activation,
                          observation_key=NORMALIZED_OBSERVATION)
+    return actor, critic
+
+
+def make_token_norm(token_features: int, loc: torch.Tensor | None = None,
+                    scale: torch.Tensor | None = None) -> TokenNorm:
+    """The token policy's input normaliser: ``(tokens - loc) / scale`` per feature, padding zero;
+    identity by default. Its statistics: :class:`~unipolicy_rl.token_statistics.TokenObservationStatistics`."""
+    loc = torch.zeros(token_features) if loc is None else loc.clone()
+    scale = torch.ones(token_features) if scale is None else scale.clone()
+    return TokenNorm(loc, scale, out_key=NORMALIZED_TOKENS)
+
+
+def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: int):
+    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer`` or ``token_mlp``), reading
+    the normalised tokens, the token mask and parents, and (the actor) the action mask.
+
+    ``token_features`` (``F``) and ``max_tokens`` (``L``, the padding) come from the env's specs.
+    The transformer's sizes are ``cfg.policy.network``; the padded MLP takes ``algo``'s hidden
+    sizes and activation; both start at ``algo.init_log_std``.
+    """
+    architecture = policy_architecture(cfg)
+    if architecture not in TOKEN_POLICIES:
+        raise ValueError(f"make_token_actor_critic builds {TOKEN_POLICIES}, got policy={architecture}")
+    algo = cfg.algo
+    if algo.get("name", "trpo") != "trpo":
+        raise ValueError(f"the token policies are Gaussian policies for TRPO, not for algo={algo.name}")
+    if architecture == "token_transformer":
+        settings = instantiate(cfg.policy.network)
+        actor = make_token_transformer_actor(token_features, settings, algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
+        critic = make_token_transformer_critic(token_features, settings, tokens_key=NORMALIZED_TOKENS)
+        return actor, critic
+    actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
+                                  algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
+    critic = make_padded_mlp_critic(token_features, max_tokens, tuple(algo.critic_hidden), algo.activation,
+                                    tokens_key=NORMALIZED_TOKENS)
     return actor, critic

@@ -233,11 +233,16 @@ def policy_fisher_vector_product_fn(
         dist_params: ``loss_module.policy_distribution_params(batch)``, with its graph.
         reference: the same distribution built from ``dist_params.detach()``.
         damping: added times ``v``.
+
+    The Fisher product differentiates the floating-point distribution parameters (``loc``,
+    ``scale``); any other one, such as the bool action mask of
+    :class:`~unipolicy_rl.masked_normal.MaskedIndependentNormal`, is data and is passed through.
     """
-    keys = loss_module.actor_network.dist_params_keys
+    keys = [key for key in loss_module.actor_network.dist_params_keys if dist_params.get(key).is_floating_point()]
+    fixed = dist_params.select(*loss_module.actor_network.dist_params_keys).exclude(*keys)  # empty for a flat policy
 
     def mean_kl_of(values: list[torch.Tensor]) -> torch.Tensor:
-        candidate = dist_params.empty()
+        candidate = fixed.clone(False)
         for key, value in zip(keys, values, strict=True):
             candidate.set(key, value)
         return loss_module.mean_kl(reference, loss_module.distribution_from_params(candidate))

@@ -265,7 +265,11 @@ class TRPOLoss(LossModule):
 
     @staticmethod
     def mean_kl(old: D.Distribution, new: D.Distribution) -> torch.Tensor:
-        """Mean over the batch of ``KL(old || new)`` (summed over action dimensions)."""
+        """Mean over the batch of ``KL(old || new)`` (summed over action dimensions).
+
+        Padded actions need nothing here: a :class:`~unipolicy_rl.masked_normal.MaskedIndependentNormal`
+        policy's KL, log-probability and entropy already count its real joints only.
+        """
         kl = D.kl_divergence(old, new)
         batch_dims = len(old.batch_shape)
         if kl.dim() > batch_dims:  # a factorised Normal reports one KL per action dim
