@@ -154,6 +154,9 @@ class RunResult:
     evaluations: tuple[Evaluation, ...]
     levels: dict[str, Evaluation | None]
     milestones: dict[int, Evaluation | None]
+    # Trained to its budget (its final evaluation exists). A run still going that has not reached a
+    # level yet may still reach it: the table counts it apart ("running"), not as never reaching it.
+    finished: bool = True
 
 
 def run_result(run: Run) -> RunResult:
@@ -161,7 +164,7 @@ def run_result(run: Run) -> RunResult:
     return RunResult(name=run.name, entry=run.source, seed=(run.config or {}).get("seed"),
                      model_free=is_model_free(run), step_schedule=on_step_schedule(run), evaluations=tuple(found),
                      levels={level.key: level.find(found) for level in LEVELS},
-                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES})
+                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=run.finished)
 
 
 # -- statistics ------------------------------------------------------------------------
@@ -206,6 +209,7 @@ class LevelStats:
     steps_interval: tuple[float, float]  # bootstrap 95% interval of that median
     seconds: float  # median wall seconds
     seconds_interval: tuple[float, float]
+    running: int = 0  # runs that have not reached the level but have not finished either
 
 
 @dataclass
@@ -224,13 +228,15 @@ class Entry:
 
 def level_stats(runs: Sequence[RunResult], key: str, resamples: int = RESAMPLES,
                 seed: int = BOOTSTRAP_SEED) -> LevelStats:
-    """One level over an entry's runs; a run that never reached it counts as ``inf``."""
+    """One level over an entry's runs; a run that has not reached it counts as ``inf`` (so while a
+    run is still going, the median and interval are provisional: ``running`` counts those runs)."""
     found = [run.levels[key] for run in runs]
     steps = [e.steps if e is not None else math.inf for e in found]
     seconds = [e.seconds if e is not None else math.inf for e in found]
     return LevelStats(reached=sum(e is not None for e in found), runs=len(found),
                       steps=median(steps), steps_interval=bootstrap_interval(steps, resamples, seed),
-                      seconds=median(seconds), seconds_interval=bootstrap_interval(seconds, resamples, seed))
+                      seconds=median(seconds), seconds_interval=bootstrap_interval(seconds, resamples, seed),
+                      running=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)))
 
 
 def make_entries(results: Sequence[RunResult], resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> list[Entry]:
@@ -307,13 +313,14 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
     for level in LEVELS:
         best = best_model_free(entries, level.key)
         lines += ["", f"{level.label} {level.key}: {level.description}",
-                  f"{'entry':<{width}}  {'reached':>7}  {'median real steps [95% CI]':<44} {'median wall s':>13}  "
+                  f"{'entry':<{width}}  {'reached':>18}  {'median real steps [95% CI]':<44} {'median wall s':>13}  "
                   f"{'vs ' + baseline:<17} vs best model-free ({best.name if best else 'none reached'})"]
         ratios = ratio_lines(entries, level.key, baseline)
         for entry in entries:
             stats = entry.levels[level.key]
             steps = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
-            lines.append(f"{entry.name:<{width}}  {f'{stats.reached}/{stats.runs}':>7}  {steps:<44} "
+            reached = f"{stats.reached}/{stats.runs}" + (f" ({stats.running} running)" if stats.running else "")
+            lines.append(f"{entry.name:<{width}}  {reached:>18}  {steps:<44} "
                          f"{format_count(stats.seconds):>13}  {ratios[entry.name][0]:<17} {ratios[entry.name][1]}")
     lines += ["", "(d) the grid at the first evaluation at or after each milestone: median grid mean / median worst "
               "design (m), over the runs that got there"]
@@ -334,13 +341,14 @@ def format_runs(results: Sequence[RunResult]) -> str:
     """Each run: its entry, seed, and the real env steps at which it reached each level."""
     width = max([len("run"), *(len(result.name) for result in results)])
     lines = [f"{'run':<{width}}  {'entry':<16} " + " ".join(f"{level.label + ' ' + level.key:>19}" for level in LEVELS)
-             + f" {'evaluations':>11} {'last at':>9}"]
+             + f" {'evaluations':>11} {'last at':>9}  status"]
     for result in results:
         reached = " ".join(f"{format_count(e.steps) if e else '-':>19}" for e in result.levels.values())
         last = f"{result.evaluations[-1].steps:,.0f}" if result.evaluations else "-"
         note = "" if result.step_schedule else "  (evaluated every evaluation.every epochs: an older run)"
+        status = "done" if result.finished else "running"
         lines.append(f"{result.name:<{width}}  {result.entry:<16} {reached} {len(result.evaluations):>11} "
-                     f"{last:>9}{note}")
+                     f"{last:>9}  {status}{note}")
     return "\n".join(lines)
 
 
@@ -349,7 +357,7 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
-        writer.writerow(["entry", "model_free", "runs", "level", "reached", "median_steps", "steps_low", "steps_high",
+        writer.writerow(["entry", "model_free", "runs", "level", "reached", "running", "median_steps", "steps_low", "steps_high",
                          "median_seconds", "seconds_low", "seconds_high", f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
@@ -357,7 +365,8 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
             best = best_model_free(entries, level.key)
             for entry in entries:
                 stats = entry.levels[level.key]
-                writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.steps,
+                writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.running,
+                                 stats.steps,
                                  *stats.steps_interval, stats.seconds, *stats.seconds_interval,
                                  fewer(reference.levels[level.key].steps, stats.steps) if reference else "",
                                  best.name if best else "", fewer(best.levels[level.key].steps, stats.steps)
