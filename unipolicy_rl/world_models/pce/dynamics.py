@@ -160,18 +160,33 @@ class PCEDynamics(nn.Module):
         pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
         return self.elites[pick]
 
+    def every_member_change(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
+        """``[rows, members, size]``: every member's mean change of every row (one design matrix for all)."""
+        x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
+        return (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
+
+    def clamped(self, state: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
+        """``state + change`` within the data's range of changes and of velocities (see the class docstring)."""
+        change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
+        next_state = state + change
+        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+
     @torch.no_grad()
     def predict(self, state, action, design, member, deterministic=False):
-        x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
         member = member.reshape(-1)
         # Every member's change for every row, then each row's own: cheap next to building x.
-        every = (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
-        change = every[torch.arange(x.shape[0], device=x.device), member]
+        every = self.every_member_change(state, action, design)
+        change = every[torch.arange(every.shape[0], device=every.device), member]
         if not deterministic:
             change = change + torch.randn_like(change) * self.residual_std[member]
-        change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
-        next_state = state + change.reshape(state.shape)
-        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+        return self.clamped(state, change.reshape(state.shape))
+
+    @torch.no_grad()
+    def predict_every_member(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
+        """``[members, rows, size]``: every member's mean prediction of every row ``[rows, ...]``
+        (what :func:`~unipolicy_rl.world_models.disagreement.member_predictions` asks for)."""
+        every = self.every_member_change(state, action, design).transpose(0, 1)
+        return self.clamped(state.reshape(1, -1, state.shape[-1]), every)
 
     @torch.no_grad()
     def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor, oversampling: float,
