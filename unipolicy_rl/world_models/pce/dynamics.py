@@ -21,6 +21,7 @@ from torch import nn
 
 from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
 from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
+from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
@@ -223,6 +224,25 @@ class PCEDynamics(nn.Module):
         train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
         return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
                          extras={"solve_fallbacks": 0})
+
+    # -- what the coefficients tell -------------------------------------------------------
+    def input_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
+        """A name per input of the expansion: the state features, ``action<j>``, ``l``, ``rho``."""
+        features = self.layout.feature_names(body_names)
+        actions = self.basis.dimension - len(features) - 2
+        return [*features, *(f"action{j}" for j in range(actions)), "l", "rho"]
+
+    @torch.no_grad()
+    def sobol_indices(self, member: int = 0) -> SobolIndices:
+        """Which inputs drive which outputs: Sobol' indices of each output's one-step change
+        ``[outputs, inputs]`` (named by ``layout.state_names()`` and :meth:`input_names`), read
+        from ``member``'s coefficients (:func:`~unipolicy_rl.polynomial_chaos.sobol_indices`;
+        the basis is orthonormal). They are the fitted expansion's under its input measure:
+        every input independent and uniform on its training range (widened by ``margin``), the
+        box the PCE is orthogonal on, not the correlated law of the robot's own states."""
+        if not (isinstance(member, int) and 0 <= member < self.members):
+            raise ValueError(f"member must be an integer in [0, {self.members}), got {member!r}")
+        return sobol_indices(self.basis.indices, self.coefficients[member].cpu(), self.basis.squared_norms())
 
     # -- the parts of a fit, shared with the sparse PCE -------------------------------------
     def regression_data(self, transitions: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
