@@ -1,6 +1,7 @@
 """Imagined steps per second of the default world model against real env steps per second.
 
     python benchmarks/imagination_throughput.py [--repeats 5] [--batches 500x10,200x25,2000x25,5000x25]
+        [--world-model moe] [--disagreement-cut 1.0]
 
 The model is ``world_model=moe`` as configured (``conf/world_model/moe.yaml``: a
 :class:`GaussianEnsemble` of 7 members, 3 x 200 SiLU, predicting the full state), given a
@@ -24,6 +25,14 @@ repeats printed. The raw PyBullet loop of one core (``env_throughput.raw_pybulle
 measured in every repeat too, beside the absolute rates. The last line is
 ``imagination_ratio: <imagined / real steps per second, 1 thread, 500 x 10>``
 (training's first batch shape; its loop runs one thread).
+
+``--world-model`` measures another world model's yaml (``pce``, ``pce_sparse``) instead.
+``--disagreement-cut T`` adds, per batch, the same imagined env with branches cut where the
+members disagree past ``T`` (``imagination.disagreement_cut``; its scale from the same real
+transitions), timed in the same repeats; its rows give the cut's steps/s, their paired ratio
+to the uncut rate (every member predicts every step, and cut rows restart), and the share of
+branches it cut. The last line is then ``cut_cost_ratio: <cut / uncut steps per second, 1
+thread, first batch>``.
 """
 
 from __future__ import annotations
@@ -36,29 +45,33 @@ import torch
 import world_model_setup
 from env_throughput import raw_pybullet
 
+from unipolicy_rl.collectors import imagined_metrics, truncate_last_step
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_collecting_policy, make_observation_norm
-from unipolicy_rl.world_models import ImaginedWalkerEnv, StateLayout, make_world_model
+from unipolicy_rl.world_models import DisagreementCut, ImaginedWalkerEnv, StateLayout, make_world_model
 
 REAL_STEPS = 100
 
 
-def timed_rollout(env, policy, steps: int) -> tuple[float, float]:
-    """(steps/s of wall time, steps per second of this process's CPU time) of one rollout."""
+def timed_rollout(env, policy, steps: int, cut_shares: list | None = None) -> tuple[float, float]:
+    """(steps/s of wall time, steps per second of this process's CPU time) of one rollout; the
+    share of branches the disagreement cut ended is appended to ``cut_shares`` when given."""
     with torch.no_grad():
         wall, cpu = time.perf_counter(), time.process_time()
         rollout = env.rollout(steps, policy, break_when_any_done=False)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    if cut_shares is not None:
+        cut_shares.append(imagined_metrics(truncate_last_step(rollout))["imagined/cut_share"])
     return rollout.numel() / wall, rollout.numel() / cpu
 
 
-def setup():
-    """The fitted default model, its fit report, the real transitions, the policy and a start sampler."""
+def setup(world_model: str = "moe"):
+    """The fitted model, its fit report, the real transitions, the policy and a start sampler."""
     collection = world_model_setup.collect(64)
     layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
     data = collection.transitions(layout.from_full)
-    model, trainer = world_model_setup.configured("moe", max_epochs=3)
+    model, trainer = world_model_setup.configured(world_model, max_epochs=3)
     report = trainer.fit(model, data, torch.Generator().manual_seed(0))
     observations = layout.observation(data["state"], data["design"])
     policy = make_collecting_policy(make_observation_norm(18, observations.mean(0), observations.std(0)),
@@ -77,26 +90,36 @@ def main() -> None:
     parser.add_argument("--batches", default="500x10,200x25,2000x25,5000x25",
                         help="imagined batches, TRAJECTORIESxHORIZON, comma-separated")
     parser.add_argument("--threads", default="1,2", help="torch thread counts, comma-separated")
+    parser.add_argument("--world-model", default="moe", help="the world model's yaml (conf/world_model/)")
+    parser.add_argument("--disagreement-cut", type=float, default=None,
+                        help="also time each batch with branches cut where members disagree past this")
     args = parser.parse_args()
     batches = [tuple(int(v) for v in spec.split("x")) for spec in args.batches.split(",")]
     thread_counts = [int(t) for t in args.threads.split(",")]
     torch.set_num_threads(1)
     torch.manual_seed(0)
 
-    model, report, data, policy, starts = setup()
+    model, report, data, policy, starts = setup(args.world_model)
     real = BatchedWalkerEnv(32, full_state=True)
     real.set_seed(0)
     world_model = make_world_model(model, RewardWeights())
     imagined = {batch: ImaginedWalkerEnv(world_model, real, starts, batch[0]) for batch in batches}
+    cutting = {}
+    if args.disagreement_cut is not None:
+        cut = DisagreementCut.from_transitions(args.disagreement_cut, data, model.layout.robot_size)
+        cut_model = make_world_model(model, RewardWeights(), cut=cut)
+        cutting = {batch: ImaginedWalkerEnv(cut_model, real, starts, batch[0]) for batch in batches}
     for threads in thread_counts:  # untimed warm-up: robot builds, first allocations
         torch.set_num_threads(threads)
         timed_rollout(real, policy, REAL_STEPS)
-        for (_, horizon), env in imagined.items():
+        for (_, horizon), env in [*imagined.items(), *cutting.items()]:
             timed_rollout(env, policy, horizon)
 
     raw_rates = []
     real_rates = {threads: [] for threads in thread_counts}
     rates = {(threads, batch): [] for threads in thread_counts for batch in batches}
+    cut_rates = {(threads, batch): [] for threads in thread_counts for batch in cutting}
+    cut_shares = {batch: [] for batch in cutting}
     for _ in range(args.repeats):  # interleaved, so drift in the machine's load hits every variant
         torch.set_num_threads(1)
         raw_rates.append(raw_pybullet(2000)[0])
@@ -105,9 +128,13 @@ def main() -> None:
             real_rates[threads].append(timed_rollout(real, policy, REAL_STEPS))
             for batch, env in imagined.items():
                 rates[threads, batch].append(timed_rollout(env, policy, batch[1]))
+                if batch in cutting:
+                    cut_rates[threads, batch].append(timed_rollout(cutting[batch], policy, batch[1],
+                                                                   cut_shares[batch]))
     real.close()
 
-    print(f"model: GaussianEnsemble, {model.members} members, {model.layout.size}-number state, fitted {report.epochs} "
+    print(f"model: {type(model).__name__} (world_model={args.world_model}), {model.members} members, "
+          f"{model.layout.size}-number state, fitted {report.epochs} "
           f"epochs on {data.shape[0]} transitions ({report.seconds:.1f} s)")
     print(f"raw PyBullet loop, one core: {statistics.median(raw_rates):.0f} actions/s "
           f"(median of {args.repeats}; {min(raw_rates):.0f}-{max(raw_rates):.0f})")
@@ -129,9 +156,19 @@ def main() -> None:
             spread = f"{statistics.median(ratios):.1f} ({min(ratios):.1f}-{max(ratios):.1f})"
             print(f"{name:44s} {threads:7d} {statistics.median(wall):9.0f} {spread:>20s} "
                   f"{statistics.median(cpu):12.0f} {statistics.median(cpu_ratios):13.1f}")
+            if (threads, (trajectories, horizon)) in cut_rates:
+                cut_wall = [w for w, _ in cut_rates[threads, (trajectories, horizon)]]
+                paired = [c / u for c, u in zip(cut_wall, wall, strict=True)]
+                headline["cut", threads, (trajectories, horizon)] = statistics.median(paired)
+                share = statistics.median(cut_shares[trajectories, horizon])
+                name = f"  with disagreement_cut={args.disagreement_cut:g} ({share:.0%} cut)"
+                print(f"{name:44s} {threads:7d} {statistics.median(cut_wall):9.0f} "
+                      f"{f'x uncut {statistics.median(paired):.2f} ({min(paired):.2f}-{max(paired):.2f})':>20s}")
     print("steps/CPU-s: steps per second of this process's CPU time (both threads' with 2), which load from "
           "other processes moves less than wall time")
     print(f"imagination_ratio: {headline[thread_counts[0], batches[0]]:.1f}")
+    if cutting:
+        print(f"cut_cost_ratio: {headline['cut', thread_counts[0], batches[0]]:.2f}")
 
 
 if __name__ == "__main__":

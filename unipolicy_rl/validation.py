@@ -174,6 +174,7 @@ def validate_config(cfg: DictConfig) -> None:
     from unipolicy_rl.envs import DesignDistribution
     from unipolicy_rl.factories import learner_settings, make_dynamics_model, resolve_device
     from unipolicy_rl.learners.off_policy import check_model_based_imagination
+    from unipolicy_rl.world_models.disagreement import check_members_disagree
 
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
@@ -195,6 +196,8 @@ def validate_config(cfg: DictConfig) -> None:
         model = _built("world_model.model",
                        lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
         check_stopping_rule(imagination.stopping, model)
+        if imagination.disagreement_cut is not None:
+            check_members_disagree(model)
         if cfg.algo.name != "trpo":
             check_model_based_imagination(imagination)
 

@@ -5,6 +5,9 @@ ME-TRPO): after each model fit, the policy trains on imagined trajectories that 
 states, either short branches of ``horizon`` steps from any buffered state (MBPO; the horizon
 grows on a schedule) or whole episodes from real start states (the thesis). A branch's last
 step is truncated, never terminated, so the value estimator bootstraps from the critic there.
+Optionally a branch ends earlier, at the step where the world model's members disagree about
+the next state past a threshold (MACURA's cut; :mod:`unipolicy_rl.world_models.disagreement`),
+truncated in the same way; TorchRL's rollout then restarts that row from a fresh real state.
 How many updates follow a fit is the stopping rule's call: a fixed number (the thesis), or
 ME-TRPO's check of the policy's return under every member.
 
@@ -29,6 +32,13 @@ from unipolicy_rl.collectors.real import IMAGINED, label, truncate_last_step
 from unipolicy_rl.collectors.replay import COLLECTED_IN
 from unipolicy_rl.envs.reward import RewardWeights
 from unipolicy_rl.seeding import IMAGINATION, epoch_seed
+from unipolicy_rl.world_models.disagreement import (
+    DISAGREEMENT,
+    DISAGREEMENT_CUT,
+    DisagreementCut,
+    check_members_disagree,
+    check_threshold,
+)
 from unipolicy_rl.world_models.dynamics import Dynamics
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.trainer import EPISODE_START
@@ -120,6 +130,10 @@ class ImaginationSettings:
         deterministic: imagine with each member's mean prediction, without its noise (the members'
             spread is then the only randomness; for a model whose noise is independent per output).
         train_on_real: also take a policy update on each real batch.
+        disagreement_cut: end a branch at the step where the members' disagreement about the next
+            state passes this (in units of a typical real step's change; see
+            :mod:`~unipolicy_rl.world_models.disagreement`), truncated; None: branches run their
+            horizon (ending early only on a model fault).
         buffer_capacity: real transitions kept (FIFO).
         stopping: how many updates follow each model fit.
     """
@@ -131,6 +145,7 @@ class ImaginationSettings:
     start_epochs: int | None = None
     deterministic: bool = False
     train_on_real: bool = False
+    disagreement_cut: float | None = None
     buffer_capacity: int = 200_000
     stopping: StoppingRule = StoppingRule()
 
@@ -143,6 +158,8 @@ class ImaginationSettings:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.start_epochs is not None and not (isinstance(self.start_epochs, int) and self.start_epochs >= 1):
             raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
+        if self.disagreement_cut is not None:
+            check_threshold(self.disagreement_cut)
 
 
 def check_stopping_rule(stopping: StoppingRule, model: Dynamics) -> None:
@@ -166,12 +183,15 @@ class Imagination:
 
     Raises:
         ValueError: ``stopping.kind=metrpo`` with a model whose members cannot vote (one per
-            design cell), naming the model.
+            design cell), or ``disagreement_cut`` with a model whose members cannot disagree (one
+            per design cell, or a single one), naming the model.
     """
 
     def __init__(self, model: Dynamics, reference_env: EnvBase, reward_weights: RewardWeights,
                  settings: ImaginationSettings, seed: int, episode_length: int) -> None:
         check_stopping_rule(settings.stopping, model)
+        if settings.disagreement_cut is not None:
+            check_members_disagree(model)
         stopping = settings.stopping
         self.model = model
         self.reference_env = reference_env
@@ -195,9 +215,13 @@ class Imagination:
         torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION))
         horizon = self.horizon(epoch)
         starts = self._start_sampler(transitions, epoch)
+        # The cut's units: each output's spread of real one-step changes in the buffer, as of now.
+        cut = (None if self.settings.disagreement_cut is None else
+               DisagreementCut.from_transitions(self.settings.disagreement_cut, transitions,
+                                                self.model.layout.robot_size))
         env = ImaginedWalkerEnv(
             make_world_model(self.model, self.reward_weights, self.settings.member_per_step,
-                             self.settings.deterministic),
+                             self.settings.deterministic, cut),
             self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
         )
         return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts))
@@ -273,15 +297,27 @@ class ImaginedEpoch:
 
 
 def imagined_metrics(rollout: TensorDictBase) -> dict[str, float]:
-    """What one imagined batch held: reward, branch return, model faults, horizon, steps."""
+    """What one imagined batch held: reward, branch return, model faults, horizon, steps, and the
+    mean branch length (a fault or the disagreement cut ends a branch before the horizon; a row
+    of the batch then holds more than one). With the cut: the share of branches it ended, and
+    the mean disagreement over the steps (those where every member's prediction was finite)."""
     reward = rollout.get(("next", "reward"))
-    return {
+    # Every branch ends with done (its last step is truncated by the time metrics are taken).
+    branches = max(1, int(rollout.get(("next", "done")).sum()))
+    metrics = {
         "imagined/reward_per_step": reward.mean().item(),
         "imagined/branch_return": reward.sum(dim=(-2, -1)).mean().item(),
         "imagined/model_faults": rollout.get(("next", "physics_fault")).sum().item(),
         "imagined/horizon": float(reward.shape[-2]),
         "imagined/steps": float(reward.numel()),
+        "imagined/branch_length": reward.numel() / branches,
     }
+    if ("next", DISAGREEMENT_CUT) in rollout.keys(include_nested=True):
+        disagreement = rollout.get(("next", DISAGREEMENT))
+        finite = disagreement[torch.isfinite(disagreement)]
+        metrics["imagined/cut_share"] = int(rollout.get(("next", DISAGREEMENT_CUT)).sum()) / branches
+        metrics["imagined/disagreement"] = finite.mean().item() if finite.numel() else float("nan")
+    return metrics
 
 
 __all__ = [

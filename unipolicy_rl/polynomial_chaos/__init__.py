@@ -1,6 +1,6 @@
 """Polynomial chaos (PCE) in torch, a library of its own: Legendre bases on uniform inputs,
 batched least squares, adaptive sparse least squares (terms chosen per output by corrected
-leave-one-out error), moments from coefficients, the thesis' reduction step and its
+leave-one-out error), moments and Sobol' indices from coefficients, the thesis' reduction step and its
 multi-element PCE (:class:`ThesisMEPCE`), and a policy's episode over the uncertain design as a
 PCE (:class:`DesignResponse`).
 
@@ -21,6 +21,7 @@ from unipolicy_rl.polynomial_chaos.basis import (
 from unipolicy_rl.polynomial_chaos.design_response import DesignResponse, gauss_legendre_designs, uniform_designs
 from unipolicy_rl.polynomial_chaos.expansion import REDUCTIONS, PolynomialChaos, mean, reduce, variance
 from unipolicy_rl.polynomial_chaos.regression import FitDiagnostics, least_squares, solve_normal_equations
+from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.polynomial_chaos.sparse import SparseFit, select_terms, sparse_least_squares
 from unipolicy_rl.polynomial_chaos.thesis import ThesisMEPCE
 
@@ -31,6 +32,7 @@ __all__ = [
     "DesignResponse",
     "FitDiagnostics",
     "PolynomialChaos",
+    "SobolIndices",
     "SparseFit",
     "ThesisMEPCE",
     "UniformInputs",
@@ -41,6 +43,7 @@ __all__ = [
     "multi_indices",
     "reduce",
     "select_terms",
+    "sobol_indices",
     "solve_normal_equations",
     "sparse_least_squares",
     "squared_norms",

@@ -1,4 +1,4 @@
-"""A fitted polynomial chaos expansion: evaluation, moments and the thesis' reduction step."""
+"""A fitted polynomial chaos expansion: evaluation, moments, Sobol' indices and the thesis' reduction step."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import torch
 
 from unipolicy_rl.polynomial_chaos.basis import Basis, UniformInputs
 from unipolicy_rl.polynomial_chaos.regression import FitDiagnostics, least_squares
+from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.polynomial_chaos.sparse import SparseFit, sparse_least_squares
 
 REDUCTIONS = ("projection", "variance")
@@ -114,6 +115,11 @@ class PolynomialChaos:
 
     def variance(self) -> torch.Tensor:
         return variance(self.coefficients, self.norms())
+
+    def sobol_indices(self) -> SobolIndices:
+        """First-order and total Sobol' indices ``[..., outputs, inputs]`` from the coefficients
+        (:func:`~unipolicy_rl.polynomial_chaos.sobol_indices`)."""
+        return sobol_indices(self.basis.indices, self.coefficients, self.norms())
 
     def reduce(self, drop: Sequence[int], mode: str = "projection") -> PolynomialChaos:
         """The expansion without the inputs ``drop`` (see :func:`reduce`)."""

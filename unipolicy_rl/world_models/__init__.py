@@ -6,6 +6,7 @@ composes it into TorchRL's ``WorldModel``; :class:`ImaginedWalkerEnv` rolls poli
 :mod:`~unipolicy_rl.evaluation.accuracy` measures its trajectories against real ones.
 """
 
+from unipolicy_rl.world_models.disagreement import DisagreementCut, MemberDisagreement
 from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 from unipolicy_rl.world_models.ensemble import CellEnsemble, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
@@ -16,10 +17,12 @@ from unipolicy_rl.world_models.trainer import ClosedFormTrainer, FitReport, Mode
 __all__ = [
     "CellEnsemble",
     "ClosedFormTrainer",
+    "DisagreementCut",
     "Dynamics",
     "FitReport",
     "GaussianEnsemble",
     "ImaginedWalkerEnv",
+    "MemberDisagreement",
     "ModelTrainer",
     "NeuralDynamics",
     "PCEDynamics",

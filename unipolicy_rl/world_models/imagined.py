@@ -4,7 +4,9 @@
 :class:`~torchrl.modules.WorldModel`: the latent is the robot's state itself (``state``),
 the dynamics head predicts the next state, the reward head is the real env's
 :func:`~unipolicy_rl.envs.walking_reward` of it (no learned reward), the done head ends a
-trajectory whose prediction blew up, and the decoder derives the policy's ``observation``.
+trajectory whose prediction blew up (and, with a
+:class:`~unipolicy_rl.world_models.disagreement.DisagreementCut`, one whose members disagree
+about the next state past its threshold), and the decoder derives the policy's ``observation``.
 :class:`ImaginedWalkerEnv` is TorchRL's :class:`~torchrl.envs.model_based.ModelBasedEnvBase`
 around it, presenting the keys and specs of :class:`~unipolicy_rl.envs.BatchedWalkerEnv`
 (``observation``, ``design``, ``physics_fault``, ``state``, reward, done/terminated/truncated)
@@ -18,7 +20,7 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
@@ -27,6 +29,13 @@ from torchrl.modules import WorldModel
 
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import healthy_rows
+from unipolicy_rl.world_models.disagreement import (
+    DISAGREEMENT,
+    DISAGREEMENT_CUT,
+    CutDoneHead,
+    DisagreementCut,
+    MemberDisagreement,
+)
 from unipolicy_rl.world_models.dynamics import Dynamics
 
 # A start state: the robot's state and design (and, once assigned, the member that predicts it).
@@ -97,8 +106,13 @@ class ObservationDecoder(nn.Module):
 
 
 def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_step: bool = False,
-                     deterministic: bool = False) -> WorldModel:
-    """Composes ``model`` into TorchRL's ``WorldModel`` (latent = ``state``)."""
+                     deterministic: bool = False, cut: DisagreementCut | None = None) -> WorldModel:
+    """Composes ``model`` into TorchRL's ``WorldModel`` (latent = ``state``).
+
+    With ``cut`` the done head also measures the members' disagreement about each step's next
+    state (``("next", "disagreement")``) and ends the branch where it passes ``cut.threshold``
+    (``("next", "disagreement_cut")``); without it the model is exactly what it was before the
+    cut existed (same keys, same random draws)."""
     nxt = "next"
     # The encoder is the identity: the real env reports the model's state itself.
     encoder = TensorDictModule(nn.Identity(), in_keys=["state"], out_keys=["state"])
@@ -108,8 +122,16 @@ def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_
         out_keys=[(nxt, "state"), (nxt, "design"), (nxt, "member"), (nxt, "physics_fault")],
     )
     reward = TensorDictModule(RewardHead(reward_weights), in_keys=[(nxt, "state")], out_keys=[(nxt, "reward")])
-    done = TensorDictModule(DoneHead(), in_keys=[(nxt, "physics_fault")],
-                            out_keys=[(nxt, "done"), (nxt, "terminated"), (nxt, "truncated")])
+    flags = [(nxt, "done"), (nxt, "terminated"), (nxt, "truncated")]
+    if cut is None:
+        done = TensorDictModule(DoneHead(), in_keys=[(nxt, "physics_fault")], out_keys=flags)
+    else:
+        done = TensorDictSequential(
+            TensorDictModule(MemberDisagreement(model, cut.scale), in_keys=["state", "action", "design"],
+                             out_keys=[(nxt, DISAGREEMENT)]),
+            TensorDictModule(CutDoneHead(cut.threshold), in_keys=[(nxt, "physics_fault"), (nxt, DISAGREEMENT)],
+                             out_keys=[*flags, (nxt, DISAGREEMENT_CUT)]),
+        )
     decoder = TensorDictModule(ObservationDecoder(model), in_keys=[(nxt, "state"), (nxt, "design")],
                                out_keys=[(nxt, "observation")])
     return WorldModel(encoder, dynamics, reward, done_head=done, decoder=decoder)
@@ -156,6 +178,11 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
             member=Categorical(model.members, (*shape, 1), dtype=torch.long),
             shape=shape,
         )
+        # A world model with the disagreement cut reports it at every step (zero at a reset).
+        self.cuts = ("next", DISAGREEMENT_CUT) in world_model.out_keys
+        if self.cuts:
+            self.observation_spec[DISAGREEMENT] = Unbounded((*shape, 1), dtype=torch.float32)
+            self.observation_spec[DISAGREEMENT_CUT] = fault.expand(*shape, *fault.shape).clone()
         for name in ("action_spec", "reward_spec", "done_spec"):
             spec = getattr(reference_env, name)[one]
             setattr(self, name, spec.expand(*shape, *spec.shape).clone())
@@ -203,6 +230,9 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
             },
             batch_size=self.batch_size,
         )
+        if self.cuts:
+            out.set(DISAGREEMENT, torch.zeros(n, 1))
+            out.set(DISAGREEMENT_CUT, torch.zeros(n, 1, dtype=torch.bool))
         zero_done = self.full_done_spec.zero()
         out.update(zero_done)
         return out

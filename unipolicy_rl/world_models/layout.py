@@ -109,6 +109,27 @@ class StateLayout:
         flat = relative.flatten(-2)[..., 2:]
         return torch.cat([flat, state[..., self.num_bodies * VALUES_PER_BODY:self.robot_size]], dim=-1)
 
+    def state_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
+        """A name per robot state column: ``<body>.x`` .. ``<body>.vz`` per body (``body_names``, or
+        ``base``, ``body1``, ...), then ``joint<j>.angle`` per actuated joint and ``joint<j>.rate``."""
+        if body_names is None:
+            body_names = ("base", *(f"body{b}" for b in range(1, self.num_bodies)))
+        if len(body_names) != self.num_bodies:
+            raise ValueError(f"the layout has {self.num_bodies} bodies, got {len(body_names)} names")
+        values = ("x", "y", "z", "vx", "vy", "vz")
+        joints = self.num_joint_values // 2
+        return ([f"{body}.{value}" for body in body_names for value in values]
+                + [f"joint{j}.angle" for j in range(joints)] + [f"joint{j}.rate" for j in range(joints)])
+
+    def feature_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
+        """A name per column of :meth:`features`, read off :meth:`features` itself (so the two
+        cannot drift apart): the state column it takes, ``rel.`` in front where the base's is
+        subtracted."""
+        names = self.state_names(body_names)
+        # Column k of features(I) is feature k as a combination of the state columns.
+        weights = self.features(torch.eye(self.robot_size))
+        return [("rel." if (column < 0).any() else "") + names[int(column.argmax())] for column in weights.T]
+
     def observation(self, state: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
         """The policy's observation of ``state`` (and ``design`` when the env appends it)."""
         observation = state[..., list(self.observation_columns)]

@@ -21,6 +21,7 @@ from torch import nn
 
 from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
 from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
+from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
@@ -160,18 +161,33 @@ class PCEDynamics(nn.Module):
         pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
         return self.elites[pick]
 
+    def every_member_change(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
+        """``[rows, members, size]``: every member's mean change of every row (one design matrix for all)."""
+        x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
+        return (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
+
+    def clamped(self, state: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
+        """``state + change`` within the data's range of changes and of velocities (see the class docstring)."""
+        change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
+        next_state = state + change
+        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+
     @torch.no_grad()
     def predict(self, state, action, design, member, deterministic=False):
-        x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
         member = member.reshape(-1)
         # Every member's change for every row, then each row's own: cheap next to building x.
-        every = (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
-        change = every[torch.arange(x.shape[0], device=x.device), member]
+        every = self.every_member_change(state, action, design)
+        change = every[torch.arange(every.shape[0], device=every.device), member]
         if not deterministic:
             change = change + torch.randn_like(change) * self.residual_std[member]
-        change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
-        next_state = state + change.reshape(state.shape)
-        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+        return self.clamped(state, change.reshape(state.shape))
+
+    @torch.no_grad()
+    def predict_every_member(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
+        """``[members, rows, size]``: every member's mean prediction of every row ``[rows, ...]``
+        (what :func:`~unipolicy_rl.world_models.disagreement.member_predictions` asks for)."""
+        every = self.every_member_change(state, action, design).transpose(0, 1)
+        return self.clamped(state.reshape(1, -1, state.shape[-1]), every)
 
     @torch.no_grad()
     def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor, oversampling: float,
@@ -208,6 +224,25 @@ class PCEDynamics(nn.Module):
         train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
         return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
                          extras={"solve_fallbacks": 0})
+
+    # -- what the coefficients tell -------------------------------------------------------
+    def input_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
+        """A name per input of the expansion: the state features, ``action<j>``, ``l``, ``rho``."""
+        features = self.layout.feature_names(body_names)
+        actions = self.basis.dimension - len(features) - 2
+        return [*features, *(f"action{j}" for j in range(actions)), "l", "rho"]
+
+    @torch.no_grad()
+    def sobol_indices(self, member: int = 0) -> SobolIndices:
+        """Which inputs drive which outputs: Sobol' indices of each output's one-step change
+        ``[outputs, inputs]`` (named by ``layout.state_names()`` and :meth:`input_names`), read
+        from ``member``'s coefficients (:func:`~unipolicy_rl.polynomial_chaos.sobol_indices`;
+        the basis is orthonormal). They are the fitted expansion's under its input measure:
+        every input independent and uniform on its training range (widened by ``margin``), the
+        box the PCE is orthogonal on, not the correlated law of the robot's own states."""
+        if not (isinstance(member, int) and 0 <= member < self.members):
+            raise ValueError(f"member must be an integer in [0, {self.members}), got {member!r}")
+        return sobol_indices(self.basis.indices, self.coefficients[member].cpu(), self.basis.squared_norms())
 
     # -- the parts of a fit, shared with the sparse PCE -------------------------------------
     def regression_data(self, transitions: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

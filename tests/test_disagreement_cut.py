@@ -1,0 +1,204 @@
+"""Imagined branches cut where the world model's members disagree (MACURA; ``imagination.disagreement_cut``)."""
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from unipolicy_rl.collectors import HorizonSchedule, Imagination, ImaginationSettings, StoppingRule, imagined_metrics
+from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
+from unipolicy_rl.networks import make_actor
+from unipolicy_rl.world_models import (
+    CellEnsemble,
+    DisagreementCut,
+    Dynamics,
+    GaussianEnsemble,
+    ImaginedWalkerEnv,
+    ModelTrainer,
+    PCEDynamics,
+    StateLayout,
+    make_world_model,
+)
+from unipolicy_rl.world_models.disagreement import MemberDisagreement, change_scale, member_predictions
+
+LAYOUT = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+X, SPLIT = 0, 4  # the base's x counts the steps; column 4 is where the members part
+GAP = 0.5
+
+
+class DivergingMembers:
+    """A tiny :class:`Dynamics`: every step moves the base's x by 1 (a branch started at x = 0 is
+    at x = t at step t); from x = ``at`` on, member k also moves column 4 by ``(k - 1) * GAP``, so
+    the members' sample standard deviation there is exactly ``GAP`` and 0 before."""
+
+    layout = LAYOUT
+
+    def __init__(self, at: int, members: int = 3) -> None:
+        self.at, self.members = at, members
+
+    @property
+    def device(self):
+        return torch.device("cpu")
+
+    @property
+    def voting_members(self):
+        return torch.arange(self.members)
+
+    def draw_members(self, design, generator=None):
+        return torch.zeros(design.shape[:-1], dtype=torch.long)
+
+    def predict(self, state, action, design, member, deterministic=False):
+        out = state.clone()
+        out[..., X] += 1.0
+        parted = (state[..., X] >= self.at - 0.5).to(state.dtype)
+        out[..., SPLIT] += (member.reshape(state.shape[:-1]).to(state.dtype) - 1.0) * GAP * parted
+        return out
+
+    def memory_of(self, batch):
+        return None
+
+
+def only_split_scale() -> torch.Tensor:
+    scale = torch.zeros(LAYOUT.robot_size)
+    scale[SPLIT] = 1.0
+    return scale
+
+
+def origin_starts(n: int) -> TensorDict:
+    return TensorDict({"state": torch.zeros(n, LAYOUT.size), "design": torch.tensor([[0.175, 0.5]]).expand(n, 2)},
+                      [n])
+
+
+@pytest.fixture(scope="module")
+def reference():
+    env = BatchedWalkerEnv(1, full_state=True)
+    env.close()  # only its specs are read
+    return env
+
+
+def test_the_tiny_model_is_a_dynamics_and_its_disagreement_is_the_gap_from_the_known_step():
+    model = DivergingMembers(at=3)
+    assert isinstance(model, Dynamics)
+    disagreement = MemberDisagreement(model, only_split_scale())
+    state = torch.zeros(5, LAYOUT.size)
+    state[:, X] = torch.arange(5.0)
+    measured = disagreement(state, torch.zeros(5, 4), torch.full((5, 2), 0.5)).squeeze(-1)
+    torch.testing.assert_close(measured, torch.tensor([0.0, 0.0, 0.0, GAP, GAP]))
+
+
+def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past_the_threshold(reference):
+    at, horizon = 3, 6
+    cut = DisagreementCut(GAP / 2, only_split_scale())
+    world_model = make_world_model(DivergingMembers(at), RewardWeights(), cut=cut)
+    env = ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=4)
+    rollout = env.rollout(horizon, make_actor(18, 4), break_when_any_done=False)
+    cut = rollout["next", "disagreement_cut"].squeeze(-1)
+    expected = torch.zeros(4, horizon, dtype=torch.bool)
+    expected[:, at] = True
+    assert torch.equal(cut, expected)
+    assert torch.equal(rollout["next", "truncated"].squeeze(-1), expected)
+    assert torch.equal(rollout["next", "done"].squeeze(-1), expected)
+    assert not rollout["next", "terminated"].any()  # the critic bootstraps at the cut
+    torch.testing.assert_close(rollout["next", "disagreement"][:, at].squeeze(-1), torch.full((4,), GAP))
+    # The cut step keeps its prediction; the row then restarts from a fresh real start (x = 0).
+    assert (rollout["next", "state"][:, at, X] == at + 1).all()
+    assert (rollout["state"][:, at + 1, X] == 0).all()
+
+
+def test_a_threshold_above_the_disagreement_never_cuts(reference):
+    cut = DisagreementCut(2 * GAP, only_split_scale())
+    world_model = make_world_model(DivergingMembers(2), RewardWeights(), cut=cut)
+    rollout = ImaginedWalkerEnv(world_model, reference, origin_starts, 3).rollout(5, break_when_any_done=False)
+    assert not rollout["next", "done"].any() and (rollout["next", "disagreement"][:, 2:] == GAP).all()
+
+
+def test_imagination_with_the_cut_logs_branch_length_and_the_share_cut(reference):
+    n = 50
+    state = torch.zeros(n, LAYOUT.size)
+    next_state = state.clone()
+    next_state[:, SPLIT] = torch.linspace(-1.0, 1.0, n)  # the only output that changes in the data
+    transitions = TensorDict({"state": state, "next_state": next_state, "action": torch.zeros(n, 4),
+                              "design": torch.full((n, 2), 0.5)}, [n])
+    assert torch.equal(change_scale(transitions, LAYOUT.robot_size) > 0, only_split_scale() > 0)
+    scale = float(next_state[:, SPLIT].std(correction=0))
+    settings = ImaginationSettings(steps_per_batch=24, horizon=HorizonSchedule(6, 6),
+                                   disagreement_cut=0.5 * GAP / scale,
+                                   stopping=StoppingRule(kind="fixed", max_updates=1))
+    imagination = Imagination(DivergingMembers(at=3), reference, RewardWeights(), settings, seed=0, episode_length=10)
+    batch = next(iter(imagination.epoch(1, transitions, make_actor(18, 4))))
+    assert batch.shape == (4, 6)
+    metrics = imagined_metrics(batch)
+    # Each row: a branch of 4 steps cut at step 3, then a fresh one truncated by the horizon after 2.
+    assert metrics["imagined/branch_length"] == 3.0 and metrics["imagined/cut_share"] == 0.5
+    # Only the cut step (x = 3) has members that disagree: one step of each row's six.
+    assert math.isclose(metrics["imagined/disagreement"], GAP / scale / 6, rel_tol=1e-5)
+
+
+def test_without_the_cut_imagination_is_unchanged(reference):
+    """Off: no new keys; and a cut that never fires leaves every value and random draw as off."""
+    torch.manual_seed(0)
+    data = _real_transitions()
+    model = GaussianEnsemble(LAYOUT, 4, members=3, elites=2, hidden=(32,))
+    ModelTrainer(max_epochs=2).fit(model, data, torch.Generator().manual_seed(0))
+    policy = make_actor(18, 4)
+
+    def rollout(cut):
+        torch.manual_seed(1)
+        starts = lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design")  # noqa: E731
+        env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), cut=cut), reference, starts, 5)
+        return env.rollout(6, policy, break_when_any_done=False)
+
+    off = rollout(None)
+    never = rollout(DisagreementCut(1e9, change_scale(data, LAYOUT.robot_size)))
+    assert "disagreement" not in off["next"].keys() and "disagreement_cut" not in off.keys()
+    assert not never["next", "disagreement_cut"].any()
+    for key in off.keys(include_nested=True, leaves_only=True):
+        assert torch.equal(off[key], never[key]), key
+
+
+def _real_transitions() -> TensorDict:
+    torch.manual_seed(0)
+    env = BatchedWalkerEnv(4, full_state=True)
+    env.set_seed(0)
+    rollout = env.rollout(30)
+    env.close()
+    return TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
+                       "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
+
+
+def test_the_imagined_env_with_the_cut_passes_torchrls_checks(reference):
+    cut = DisagreementCut(GAP / 2, only_split_scale())
+    world_model = make_world_model(DivergingMembers(1), RewardWeights(), cut=cut)
+    check_env_specs(ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=3))
+
+
+def test_the_pce_predicts_every_member_at_once_as_it_predicts_each():
+    data = _real_transitions()
+    model = PCEDynamics(LAYOUT, 4, order=2, members=3)
+    n = data.batch_size[0]
+    model.fit(data, torch.arange(n - 20), torch.arange(n - 20, n), oversampling=4.0,
+              generator=torch.Generator().manual_seed(0))
+    state, action, design = data["state"][:7], data["action"][:7], data["design"][:7]
+    every = member_predictions(model, state, action, design)
+    assert every.shape == (3, 7, LAYOUT.size)
+    for k in range(3):
+        each = model.predict(state, action, design, torch.full((7,), k), deterministic=True)
+        torch.testing.assert_close(every[k], each)
+    assert (every.std(0) > 0).any()  # the bootstrap members differ
+
+
+@pytest.mark.parametrize("bad", [0, -0.5, float("nan"), float("inf"), True, "1"])
+def test_a_threshold_that_is_not_a_positive_number_is_refused_by_name(bad):
+    with pytest.raises(ValueError, match=r"imagination\.disagreement_cut must be a positive number.*got"):
+        ImaginationSettings(disagreement_cut=bad)
+
+
+def test_the_cut_is_refused_for_models_whose_members_cannot_disagree(reference):
+    cells = CellEnsemble(LAYOUT, 4, (0.15, 0.2), (0.4, 0.6), divisions=2, hidden=(8,))
+    settings = ImaginationSettings(disagreement_cut=1.0, stopping=StoppingRule(kind="fixed"))
+    with pytest.raises(ValueError, match="CellEnsemble cannot.*one per cell.*disagreement_cut=null"):
+        Imagination(cells, reference, RewardWeights(), settings, 0, 10)
+    with pytest.raises(ValueError, match="DivergingMembers cannot.*single member"):
+        Imagination(DivergingMembers(1, members=1), reference, RewardWeights(), settings, 0, 10)
