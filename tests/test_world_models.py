@@ -469,7 +469,8 @@ class _ShiftedMembers:
     voting_members = property(lambda self: torch.arange(self.members))
 
     def predict(self, state, action, design, member, deterministic=False):
-        return self.data["next_state"] + self.offsets[int(member[0])]
+        rows = torch.arange(len(member)) % len(self.data)  # (the rows come repeated once per member)
+        return self.data["next_state"][rows] + torch.stack(self.offsets)[member, rows]
 
 
 def test_fresh_error_is_the_unexplained_share_of_the_real_state_change():

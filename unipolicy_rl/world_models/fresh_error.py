@@ -14,8 +14,9 @@ Two figures, for any :class:`~unipolicy_rl.world_models.Dynamics`:
   predicting the batch's mean change). Unit-free, so models, outputs and epochs compare.
 * ``fresh_spread_rank``: the rank correlation, over the new transitions, between the members'
   disagreement and the error of their mean: whether the spread the model reports tracks its
-  actual error there (what a cut or a stopping rule on disagreement relies on). NaN with a
-  single member.
+  actual error there (what a cut or a stopping rule on disagreement relies on: the spread is
+  the one :mod:`~unipolicy_rl.world_models.disagreement` measures, here in units of the new
+  batch's real change). NaN with a single member.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from unipolicy_rl.world_models.disagreement import member_predictions
 from unipolicy_rl.world_models.dynamics import Dynamics
 
 # Outputs whose real change varies less than this (in their own units, squared) over the batch
@@ -55,12 +57,11 @@ def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "mod
     device = model.device
     state, action, design, next_state = (rows.get(key).float().to(device)
                                          for key in ("state", "action", "design", "next_state"))
-    n = state.shape[0]
-    voters = model.voting_members
-    members = ([torch.full((n,), int(m), dtype=torch.long, device=device) for m in voters.tolist()]
-               if voters is not None else [model.draw_members(design).to(device)])
-    predictions = torch.stack([model.predict(state, action, design, member, deterministic=True) - state
-                               for member in members])  # [members, n, outputs]
+    if model.voting_members is not None:
+        predictions = member_predictions(model, state, action, design) - state  # [members, n, outputs]
+    else:
+        member = model.draw_members(design).to(device)
+        predictions = (model.predict(state, action, design, member, deterministic=True) - state).unsqueeze(0)
     change = next_state - state
     variance = change.var(0, correction=0)
     signal = variance > MIN_VARIANCE
@@ -70,7 +71,7 @@ def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "mod
     unexplained = (mean_prediction - change).square().mean(0)[signal] / variance[signal]
     scale = variance[signal].sqrt()
     error_per_row = ((mean_prediction - change)[:, signal] / scale).square().mean(1)
-    spread_per_row = (predictions[:, :, signal].std(0) / scale).mean(1) if len(members) > 1 else None
+    spread_per_row = (predictions[:, :, signal].std(0) / scale).mean(1) if len(predictions) > 1 else None
     return {
         f"{prefix}fresh_error": float(unexplained.mean()),
         f"{prefix}fresh_spread_rank": (rank_correlation(spread_per_row, error_per_row) if spread_per_row is not None
