@@ -357,8 +357,8 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
-        writer.writerow(["entry", "model_free", "runs", "level", "reached", "running", "median_steps", "steps_low", "steps_high",
-                         "median_seconds", "seconds_low", "seconds_high", f"fewer_than_{baseline}",
+        writer.writerow(["entry", "model_free", "runs", "level", "reached", "running", "median_steps", "steps_low",
+                         "steps_high", "median_seconds", "seconds_low", "seconds_high", f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
         for level in LEVELS:
