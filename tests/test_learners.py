@@ -102,7 +102,8 @@ def test_the_normaliser_refresh_reports_the_kl_it_causes_with_the_losses_kl():
         probe = TensorDict({"observation": observations.reshape(-1, 18)}, batch_size=[128])
         with torch.no_grad():
             before = learner.policy(probe.clone())
-            kls[mode] = learner.refresh_observation_normalizer(observations)["train/refresh_kl"]
+            batch = TensorDict({"observation": observations}, batch_size=[2, 64])
+            kls[mode] = learner.refresh_observation_normalizer(batch)["train/refresh_kl"]
             after = learner.policy(probe.clone())
         (m1, s1), (m2, s2) = (before["loc"], before["scale"]), (after["loc"], after["scale"])
         by_hand = (torch.log(s2 / s1) + (s1**2 + (m1 - m2) ** 2) / (2 * s2**2) - 0.5).sum(-1).mean()
