@@ -148,6 +148,12 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     assert (step["action"][~step["action_mask"]] == 0).all()
     with pytest.raises(ValueError, match="link tokens"):
         loaded.act(np.zeros(18))
+    # python -m unipolicy_rl.evaluate takes it too, on any side of the split.
+    from unipolicy_rl.evaluate import main as evaluate
+
+    summary = evaluate([str(tmp_path / "a" / "checkpoint.pt"), "--grid", "1", "--morphologies", "held_out",
+                        "--out", str(tmp_path / "held_out")])
+    assert summary["morphologies"] == 2 and summary["designs"] == 2
 
 
 def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):

@@ -18,9 +18,8 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs.transforms import ObservationNorm
-
 from tensordict.utils import NestedKey
+from torchrl.envs.transforms import ObservationNorm
 
 from unipolicy_rl.learners.base import StalledLearning, policy_state
 from unipolicy_rl.objectives import TRPOUpdater
