@@ -32,7 +32,7 @@ from unipolicy_rl.checkpoint import (
     settings_for_resume,
 )
 from unipolicy_rl.collectors import imagined_metrics
-from unipolicy_rl.evaluation import format_summary
+from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd
@@ -77,7 +77,7 @@ def main(cfg: DictConfig) -> dict:
                                      observation_dim=observation_dim, action_dim=action_dim, learner=learner,
                                      collector=real, world=world,
                                      elapsed_before=state.get("elapsed", 0.0) if state else 0.0)
-        evaluation = PeriodicEvaluation(cfg, best=state.get("best_evaluation") if state else None)
+        evaluation = PeriodicEvaluation(cfg, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
         log = RunLog(instantiate(cfg.logger), run_dir, cfg.epochs, real.epoch, cfg.run_name, cfg.progress_bar)
         tick = time.perf_counter()
         for batch in real:
@@ -88,7 +88,7 @@ def main(cfg: DictConfig) -> dict:
             if world is None or world.imagination.train_on_real:
                 metrics.update(learner.update(batch))
             # The next updates normalise with statistics that include this epoch's observations.
-            metrics.update(learner.refresh_observation_normalizer(batch["observation"]))
+            metrics.update(learner.refresh_observation_normalizer(batch))
             metrics.update(real.metrics())
             if world is not None:
                 # ---- Model training on the replay buffer of real transitions
@@ -130,6 +130,8 @@ def main(cfg: DictConfig) -> dict:
     print(f"saved policy: {path}")
     print(f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}:")
     print(format_summary(summary))
+    if "morphologies" in summary:  # robot=grammar: the grid of every evaluated morphology
+        print(format_morphology_summary(summary))
     best = evaluation.best
     if best is not None:
         print(f"best periodic evaluation: epoch {best['epoch']}, grid mean {best['grid_mean']:.2f} m, worst design "

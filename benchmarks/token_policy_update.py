@@ -4,18 +4,23 @@ against the padded-MLP baseline, on the same batch of padded link tokens.
 A batch of ``--samples`` synthetic steps (episodes of 100) of robots of two morphologies padded
 to ``--tokens`` tokens of ``--features`` features (no env: the cost is the networks'); the
 settings of ``conf/algo/trpo.yaml`` and ``conf/policy/``: 10 CG iterations, max KL 0.01, critic
-Adam for 10 epochs of minibatches of 128. Per architecture, one warm-up update, then
-``--repeats`` timed ones, the architectures alternating so load from other processes hits each
+Adam for 10 epochs of minibatches of 128. Per architecture and ``fisher_fraction`` (the share of
+the batch the Fisher-vector products use, ``--fractions``), one warm-up update, then
+``--repeats`` timed ones, the variants alternating so load from other processes hits each
 alike. Printed: the median wall time of the policy step (``natural_gradient_step``: surrogate
 gradient, CG with Fisher-vector products, line search) and of the whole update (GAE, policy
-step, critic fit). One thread.
+step, critic fit), each fraction's step time as a ratio of the whole batch's, and whether every
+step kept the trust region: accepted steps, and the largest whole-batch KL over ``max_kl``. One
+thread.
 
     python benchmarks/token_policy_update.py                 # 1,000 steps, 12 tokens, 3 repeats
+    python benchmarks/token_policy_update.py --architectures token_transformer --fractions 1.0 0.2
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import time
 
@@ -24,7 +29,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
-from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion, natural_gradient_step
+from unipolicy_rl.objectives import TRPOLoss, TRPOStepResult, TRPOUpdater, TrustRegion, natural_gradient_step
 from unipolicy_rl.token_networks import (
     TokenTransformerSettings,
     make_padded_mlp_actor,
@@ -73,8 +78,8 @@ def architectures(tokens: int, features: int) -> dict[str, tuple]:
     }
 
 
-def timed_update(updater: TRPOUpdater, batch: TensorDict) -> tuple[float, float]:
-    """(policy step seconds, whole update seconds) on fresh copies of ``batch``."""
+def timed_update(updater: TRPOUpdater, batch: TensorDict) -> tuple[float, float, TRPOStepResult]:
+    """(policy step seconds, whole update seconds, the step's result) on fresh copies of ``batch``."""
     loss = updater.loss_module
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         batch = loss.actor_network(batch.clone())  # actions and behaviour loc/scale of this policy
@@ -84,14 +89,14 @@ def timed_update(updater: TRPOUpdater, batch: TensorDict) -> tuple[float, float]
     advantage = loss.advantage(flat)
     state = {name: param.detach().clone() for name, param in loss.actor_network_params.items(True, True)}
     start = time.perf_counter()
-    natural_gradient_step(loss, flat, advantage=advantage, trust_region=updater.trust_region)
+    result = natural_gradient_step(loss, flat, advantage=advantage, trust_region=updater.trust_region)
     step_seconds = time.perf_counter() - start
     with torch.no_grad():  # back to the behaviour policy before the whole update
         for name, param in loss.actor_network_params.items(True, True):
             param.copy_(state[name])
     start = time.perf_counter()
     updater.update(batch)
-    return step_seconds, time.perf_counter() - start
+    return step_seconds, time.perf_counter() - start, result
 
 
 def main() -> None:
@@ -100,24 +105,41 @@ def main() -> None:
     parser.add_argument("--tokens", type=int, default=12)
     parser.add_argument("--features", type=int, default=24)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--fractions", type=float, nargs="+", default=[1.0],
+                        help="fisher_fraction values to time (default 1.0: the whole batch)")
+    parser.add_argument("--architectures", nargs="+", default=None, help="a subset of the architectures")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    updaters = {name: TRPOUpdater(TRPOLoss(actor, critic), trust_region=TrustRegion(),
-                                  generator=torch.Generator().manual_seed(0))
-                for name, (actor, critic) in architectures(args.tokens, args.features).items()}
-    times: dict[str, list[tuple[float, float]]] = {name: [] for name in updaters}
+    chosen = architectures(args.tokens, args.features)
+    names = args.architectures or list(chosen)
+    updaters = {}
+    for name in names:
+        for fraction in args.fractions:
+            actor, critic = copy.deepcopy(chosen[name])  # every fraction starts from the same networks
+            updaters[name, fraction] = TRPOUpdater(TRPOLoss(actor, critic), trust_region=TrustRegion(
+                fisher_fraction=fraction), generator=torch.Generator().manual_seed(0))
+    times: dict[tuple[str, float], list[tuple[float, float, TRPOStepResult]]] = {key: [] for key in updaters}
     for repeat in range(args.repeats + 1):
-        for name, updater in updaters.items():
-            result = timed_update(updater, token_batch(args.samples, args.tokens, args.features))
+        batch = token_batch(args.samples, args.tokens, args.features)
+        for key, updater in updaters.items():
+            result = timed_update(updater, batch)
             if repeat:  # the first is a warm-up
-                times[name].append(result)
+                times[key].append(result)
     print(f"{args.samples} steps, {args.tokens} tokens of {args.features} features, median of {args.repeats}:")
-    for name, results in times.items():
-        parameters = sum(p.numel() for p in updaters[name].loss_module.actor_parameters())
+    max_kl = TrustRegion().max_kl
+    for (name, fraction), results in times.items():
+        parameters = sum(p.numel() for p in updaters[name, fraction].loss_module.actor_parameters())
         step = statistics.median(result[0] for result in results)
         update = statistics.median(result[1] for result in results)
-        print(f"  {name:24s} actor parameters {parameters:6d}  policy step {step:6.2f} s  whole update {update:6.2f} s")
+        whole = statistics.median(result[0] for result in times[name, args.fractions[0]])
+        accepted = sum(result[2].accepted for result in results)
+        worst_kl = max(result[2].kl for result in results)
+        tries = statistics.mean(result[2].line_search_tries for result in results)
+        print(f"  {name:24s} fisher_fraction {fraction:4.2f}  actor parameters {parameters:6d}  policy step "
+              f"{step:6.2f} s ({step / whole:4.2f} of fraction {args.fractions[0]:g})  whole update {update:6.2f} s  "
+              f"accepted {accepted}/{len(results)}, max KL {worst_kl / max_kl:4.2f} x max_kl, "
+              f"line-search tries {tries:.1f}")
 
 
 if __name__ == "__main__":

@@ -42,8 +42,8 @@ class ReplayLearner:
             self.gradient_steps += 1
         return {"train/gradient_steps": float(self.gradient_steps), "train/buffer_size": float(len(self.buffer))}
 
-    def refresh_observation_normalizer(self, observations) -> dict[str, float]:
-        self.statistics.update(observations)
+    def refresh_observation_normalizer(self, batch) -> dict[str, float]:
+        self.statistics.update(batch["observation"])
         self.statistics.copy_to(self.normalizer)
         return {}
 

@@ -2,6 +2,7 @@
 (its own replay buffer, many gradient steps per real step) without a special case."""
 
 import csv
+import hashlib
 import subprocess
 import sys
 from pathlib import Path
@@ -102,9 +103,56 @@ def test_the_normaliser_refresh_reports_the_kl_it_causes_with_the_losses_kl():
         probe = TensorDict({"observation": observations.reshape(-1, 18)}, batch_size=[128])
         with torch.no_grad():
             before = learner.policy(probe.clone())
-            kls[mode] = learner.refresh_observation_normalizer(observations)["train/refresh_kl"]
+            batch = TensorDict({"observation": observations}, batch_size=[2, 64])
+            kls[mode] = learner.refresh_observation_normalizer(batch)["train/refresh_kl"]
             after = learner.policy(probe.clone())
         (m1, s1), (m2, s2) = (before["loc"], before["scale"]), (after["loc"], after["scale"])
         by_hand = (torch.log(s2 / s1) + (s1**2 + (m1 - m2) ** 2) / (2 * s2**2) - 0.5).sum(-1).mean()
         assert kls[mode] == pytest.approx(float(by_hand), abs=1e-6)
     assert abs(kls["preserve"]) < 1e-6 < kls["jump"]
+
+
+# Recorded on main before robot=grammar was wired into the learner and the collector (torch 2.13
+# CPU, one thread): two TRPO updates and normaliser refreshes of the default learner.
+DEFAULT_LEARNER_SHA256 = "a2b39c3b912cd3dac978d01fda95e1417f10c98abad732a665f8adcaa873eb65"
+DEFAULT_LEARNER_KL = "0x1.fb92500000000p-8"
+
+
+def test_the_default_learner_s_numbers_have_not_moved():
+    """The flat path (robot=vertebrate policy=mlp, the default) is bit for bit what it was."""
+    from hydra import compose, initialize_config_dir
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from unipolicy_rl.factories import make_learner
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["algo.critic_epochs=2"])
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        learner = make_learner(cfg, 18, 4)
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(2):
+            batch = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1}, [2, 64])
+            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+                batch = learner.policy(batch)
+            done = torch.zeros(2, 64, 1, dtype=torch.bool)
+            done[:, 31::32] = True
+            batch["next"] = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1,
+                                        "reward": torch.randn(2, 64, 1, generator=generator), "done": done,
+                                        "terminated": torch.zeros_like(done)}, [2, 64])
+            metrics = learner.update(batch)
+            learner.refresh_observation_normalizer(batch)
+    finally:
+        torch.set_num_threads(threads)
+    state = learner.state_dict()
+    digest = hashlib.sha256()
+    for name in ("actor", "critic"):
+        for value in state[name].values():
+            digest.update(value.detach().numpy().tobytes())
+    digest.update(state["observation_statistics"]["mean"].numpy().tobytes())
+    digest.update(state["observation_statistics"]["squared_deviations"].numpy().tobytes())
+    if not torch.__version__.startswith("2.13"):
+        pytest.skip(f"the recorded bits are torch 2.13's; this is {torch.__version__}")
+    assert (digest.hexdigest(), metrics["train/kl"].hex()) == (DEFAULT_LEARNER_SHA256, DEFAULT_LEARNER_KL)

@@ -267,6 +267,68 @@ def test_flat_trpo_step_is_bit_identical_to_before_masked_actions():
     assert (result.kl.hex(), result.step_size.hex(), digest) == (FLAT_STEP_KL, FLAT_STEP_SIZE, FLAT_PARAMS_SHA256)
 
 
+@pytest.mark.parametrize("fraction", [1.0, 0.2])
+def test_the_fisher_product_on_a_subsample_keeps_the_step_within_its_kl_bound(fraction):
+    """``fisher_fraction`` sizes the step from every fifth sample's Fisher products; the line search
+    checks the whole batch's KL, so the accepted step stays within the bound. At 1.0 the step is
+    exactly the default's."""
+    actor, critic = transformer()
+    loss = TRPOLoss(actor, critic)
+    batch = trpo_batch(loss, robots([SNAKE, QUADRUPED], length=8, batch=200))
+    start = [param.detach().clone() for param in loss.actor_parameters()]
+    max_kl = 0.01
+
+    default = natural_gradient_step(loss, batch, trust_region=TrustRegion(max_kl=max_kl))
+    default_params = [param.detach().clone() for param in loss.actor_parameters()]
+    with torch.no_grad():
+        for param, value in zip(loss.actor_parameters(), start, strict=True):
+            param.copy_(value)
+    result = natural_gradient_step(loss, batch, trust_region=TrustRegion(max_kl=max_kl, fisher_fraction=fraction))
+
+    assert result.accepted, result.skip_reason
+    with torch.no_grad():  # the whole batch's KL, computed afresh
+        kl = loss.mean_kl(loss.behaviour_distribution(batch), loss.policy_distribution(batch)).item()
+    assert 0 < kl <= max_kl and kl == pytest.approx(result.kl, rel=1e-4)
+    moved = [torch.equal(a, b) for a, b in zip(loss.actor_parameters(), default_params, strict=True)]
+    if fraction == 1.0:
+        assert all(moved) and result == default  # bit for bit the default step
+    else:
+        assert not all(moved)  # the subsample's curvature gave another step
+
+
+def test_fisher_subsample_takes_evenly_spaced_samples():
+    from unipolicy_rl.objectives import fisher_subsample
+
+    assert fisher_subsample(1000, 1.0) is None and fisher_subsample(3, 0.99) is None
+    assert fisher_subsample(1000, 0.2).tolist() == list(range(0, 1000, 5))  # OpenAI baselines' arr[::5]
+    assert fisher_subsample(7, 0.2).tolist() == [0, 3]
+    assert fisher_subsample(1, 0.01) is None
+    for bad in (0, -0.5, 1.5, float("nan"), True):
+        with pytest.raises(ValueError, match="fisher_fraction must lie in"):
+            TrustRegion(fisher_fraction=bad)
+
+
+def test_the_trpo_learner_refreshes_token_statistics_over_real_tokens_with_the_masks():
+    from unipolicy_rl.factories import make_learner
+
+    cfg = policy_config("token_transformer", "robot=grammar", "policy.network.d_model=16",
+                        "policy.network.feedforward=32")
+    learner = make_learner(cfg, F, 9)
+    assert {TOKENS, TOKEN_MASK, TOKEN_PARENT, ACTION_MASK, ("next", TOKENS), ("next", TOKEN_MASK)} <= \
+        set(learner.batch_keys)
+    assert "observation" not in learner.batch_keys
+    data = robots([SNAKE, QUADRUPED], length=9, batch=12)
+    data[TOKENS] = 3 + 2 * data[TOKENS]
+    batch = data.reshape(3, 4)
+    metrics = learner.refresh_observation_normalizer(batch)
+
+    reference = ObservationStatistics(F)
+    reference.update(data[TOKENS][data[TOKEN_MASK]])
+    assert learner.statistics.count == int(data[TOKEN_MASK].sum())  # padding is no observation
+    torch.testing.assert_close(learner.normalizer.loc, reference.loc)
+    assert abs(metrics["train/refresh_kl"]) < 1e-6  # preserve: the policy did not move
+
+
 # -------------------------------------------------------------------------- statistics
 def test_token_statistics_and_normaliser_ignore_padding():
     data = robots([SNAKE, QUADRUPED], length=7, batch=10)

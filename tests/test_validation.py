@@ -68,6 +68,7 @@ def test_every_numeric_setting_refuses_an_invalid_value_naming_its_key(overrides
         ("epochs=-1", "epochs must be an integer >= 1, got -1"),
         ("algo.gamma=1.5", "algo.gamma must lie in (0, 1], got 1.5"),
         ("evaluation.grid=0", "evaluation.grid must be an integer >= 1, got 0"),
+        ("robot=grammar", "policy=mlp reads one robot's flat observation, but robot=grammar"),
     ],
 )
 def test_a_bad_override_stops_train_py_before_any_robot_is_built(tmp_path, override, message):
@@ -135,3 +136,36 @@ def test_check_settings_runs_only_the_rules_of_the_keys_named():
     model = composed(["source=moe"])
     for key in [*RULES, *(key for joint in JOINT_RULES for key in joint)]:
         assert OmegaConf.select(model, key) is not None, key
+
+
+# ---- robot=grammar and the token policies: combinations that cannot run are refused by name
+GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_size=2"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["robot=grammar"], r"use a token policy \(policy=token_transformer or policy=token_mlp\)"),
+        (["policy=token_transformer"], "policy=token_transformer reads link tokens, which robot=vertebrate does not "
+                                       "write: train it with robot=grammar"),
+        ([*GRAMMAR, "policy=token_mlp", "source=moe"], "source=moe fits a world model, and robot=grammar has none"),
+        ([*GRAMMAR, "policy=token_mlp", "algo=sac"], "algo=sac with robot=grammar: the token policies are TRPO's"),
+        (["policy.name=cnn"], r"policy.name must be one of \['mlp', 'token_mlp', 'token_transformer'\], got 'cnn'"),
+        (["algo.fisher_fraction=0"], r"algo: fisher_fraction must lie in \(0, 1\]"),
+        (["algo.fisher_fraction=1.5"], r"algo: fisher_fraction must lie in \(0, 1\]"),
+        ([*GRAMMAR, "policy=token_mlp", "evaluation.morphologies=test"], "evaluation.morphologies must be one of"),
+        ([*GRAMMAR, "policy=token_mlp", "robot.sampling=random"], "robot.sampling must be one of"),
+        ([*GRAMMAR, "policy=token_mlp", "robot.training_morphologies=4"],
+         r"robot.training_morphologies must be null or an integer in \[1, 3\]"),
+        (["+robot.kind=snake"], "robot.kind must be one of"),
+    ],
+)
+def test_a_robot_and_policy_that_cannot_train_together_are_refused_by_name(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        validate_config(composed(overrides))
+
+
+def test_a_grammar_run_with_a_token_policy_is_valid():
+    for policy in ("token_transformer", "token_mlp"):
+        validate_config(composed([*GRAMMAR, f"policy={policy}", "robot.training_morphologies=2",
+                                  "evaluation.morphologies=all", "algo.fisher_fraction=0.2"]))

@@ -28,8 +28,17 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from unipolicy_rl.envs.config import env_kwargs
-from unipolicy_rl.policy import make_collecting_policy, make_observation_norm, make_policy_actor
+from unipolicy_rl.envs.batched import BatchedWalkerEnv
+from unipolicy_rl.envs.config import env_builder
+from unipolicy_rl.policy import (
+    TOKEN_POLICIES,
+    make_collecting_policy,
+    make_observation_norm,
+    make_policy_actor,
+    make_token_actor_critic,
+    make_token_norm,
+    policy_architecture,
+)
 
 
 def save_checkpoint(path: str | Path, state: dict) -> Path:
@@ -76,6 +85,10 @@ def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim:
                    collector, world=None, best_evaluation: dict | None = None, resumable: bool = True) -> dict:
     """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds.
 
+    ``observation_dim`` and ``action_dim`` are the policy's sizes: for a token policy the
+    features per token ``F`` and the padded number of tokens ``L`` (what
+    :func:`~unipolicy_rl.factories.probe_dimensions` reads off the env), so :func:`load_policy`
+    rebuilds it with ``make_token_actor_critic(cfg, F, L)``.
     ``learner`` is a :class:`~unipolicy_rl.learners.Learner`, ``collector`` the real collector,
     ``world`` a model-based run's :class:`~unipolicy_rl.factories.WorldModelParts` (or None), and
     ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst).
@@ -229,17 +242,23 @@ def _show(value) -> str:
 class LoadedPolicy:
     """A trained policy, ready to act.
 
-    ``policy`` reads the raw ``observation`` (normalisation is inside it) and writes
-    ``action``; ``env_kwargs`` rebuild the environment it was trained on.
+    ``policy`` reads the raw ``observation`` (normalisation is inside it), or for a token policy
+    the raw ``tokens`` with their masks and parents, and writes ``action``;
+    ``env_class(num_robots, **env_kwargs)`` rebuilds the environment it was trained on
+    (``BatchedWalkerEnv``, or ``MorphologyWalkerEnv`` for ``robot=grammar``).
     """
 
     policy: TensorDictModuleBase
     env_kwargs: dict
     config: dict
     epoch: int
+    env_class: type = BatchedWalkerEnv
 
     def act(self, observation: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """Action for one WalkerEnv observation (or a batch of them)."""
+        """Action for one WalkerEnv observation (or a batch of them); a flat policy's only."""
+        if self.env_class is not BatchedWalkerEnv:
+            raise ValueError(f"act() takes a flat WalkerEnv observation; this policy reads the link tokens of a "
+                             f"{self.env_class.__name__}: call .policy on a tensordict of the env's keys")
         observation = torch.as_tensor(np.asarray(observation), dtype=torch.float32)
         td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
         mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
@@ -248,12 +267,20 @@ class LoadedPolicy:
 
 
 def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
-    """Rebuilds the trained policy from a checkpoint: ``load_policy(p).act(obs)``."""
+    """Rebuilds the trained policy from a checkpoint: ``load_policy(p).act(obs)``; a token policy
+    from its architecture (``policy``) and its sizes ``F`` and ``L`` (``observation_dim``, ``action_dim``)."""
     state = load_checkpoint(path)
     cfg = OmegaConf.create(state["config"])
     policy = state["policy"]
-    actor = make_policy_actor(cfg, state["observation_dim"], state["action_dim"])
+    dims, loc, scale = (state["observation_dim"], state["action_dim"]), policy["observation_loc"], \
+        policy["observation_scale"]
+    if policy_architecture(cfg) in TOKEN_POLICIES:
+        actor, _ = make_token_actor_critic(cfg, *dims)
+        normalizer = make_token_norm(dims[0], loc, scale)
+    else:
+        actor = make_policy_actor(cfg, *dims)
+        normalizer = make_observation_norm(dims[0], loc, scale)
     actor.load_state_dict(policy["actor"])
-    normalizer = make_observation_norm(state["observation_dim"], policy["observation_loc"], policy["observation_scale"])
     policy = make_collecting_policy(normalizer, actor).to(device).eval()
-    return LoadedPolicy(policy, env_kwargs(cfg), state["config"], state["epoch"])
+    env_class, kwargs = env_builder(cfg)
+    return LoadedPolicy(policy, kwargs, state["config"], state["epoch"], env_class)

@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
-from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from unipolicy_rl.collectors import (
     Imagination,
@@ -30,13 +30,24 @@ from unipolicy_rl.collectors import (
 )
 from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
 from unipolicy_rl.envs import BatchedWalkerEnv
-from unipolicy_rl.envs.config import env_kwargs
+from unipolicy_rl.envs.config import env_builder, env_kwargs
+from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
 from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
 from unipolicy_rl.learners.off_policy import check_model_based_imagination
 from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
-from unipolicy_rl.policy import make_actor_critic, make_collecting_policy, make_observation_norm, make_policy_actor
+from unipolicy_rl.policy import (
+    TOKEN_POLICIES,
+    make_actor_critic,
+    make_collecting_policy,
+    make_observation_norm,
+    make_policy_actor,
+    make_token_actor_critic,
+    make_token_norm,
+    policy_architecture,
+)
+from unipolicy_rl.token_statistics import TokenObservationStatistics
 from unipolicy_rl.validation import check_settings
 from unipolicy_rl.world_models import Dynamics, StateLayout
 from unipolicy_rl.world_models.trainer import Trainer
@@ -45,8 +56,9 @@ from unipolicy_rl.world_models.trainer import Trainer
 SOURCE_KINDS = ("real", "model")
 
 
-def training_env(num_robots: int, ignore_signals: bool = False, **kwargs) -> TransformedEnv:
-    """One process's robots, with TorchRL's episode-reward tracking.
+def training_env(num_robots: int, ignore_signals: bool = False, env_class: type[EnvBase] = BatchedWalkerEnv,
+                 **kwargs) -> TransformedEnv:
+    """One process's robots (``env_class(num_robots, **kwargs)``), with TorchRL's episode-reward tracking.
 
     In a collector worker (``ignore_signals``) Ctrl-C and a scheduler's SIGTERM, which reach
     every process of the job, are ignored: the trainer alone decides when to stop, after the
@@ -55,7 +67,7 @@ def training_env(num_robots: int, ignore_signals: bool = False, **kwargs) -> Tra
     if ignore_signals:
         for number in (signal.SIGINT, signal.SIGTERM):
             signal.signal(number, signal.SIG_IGN)
-    return TransformedEnv(BatchedWalkerEnv(num_robots, **kwargs), RewardSum())
+    return TransformedEnv(env_class(num_robots, **kwargs), RewardSum())
 
 
 def robots_per_worker(cfg: DictConfig) -> int:
@@ -81,9 +93,19 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     still ends an episode early, and that robot restarts at once.
 
     ``full_state`` adds the robots' full state (``state``) to every step, for a world model.
+    The env is the config's robot's (:func:`~unipolicy_rl.envs.config.env_builder`): the
+    vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``.
     """
     frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
-    kwargs = {**env_kwargs(cfg), "episode_length": None, "full_state": full_state}
+    env_class, kwargs = env_builder(cfg)
+    kwargs = {**kwargs, "episode_length": None}
+    if env_class is BatchedWalkerEnv:
+        kwargs["full_state"] = full_state
+    elif full_state:
+        raise ValueError(f"full_state: {env_class.__name__} has no full state for a world model (robot=grammar "
+                         "trains model-free)")
+    if env_class is not BatchedWalkerEnv:
+        kwargs["env_class"] = env_class
     # The policy needs no env transform (its normaliser is inside it): say so, which also
     # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
     common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
@@ -163,18 +185,29 @@ def resolve_device(name: str) -> torch.device:
 
 
 def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> TRPOLearner:
-    """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser."""
+    """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser.
+
+    For a token policy (``policy=token_transformer|token_mlp``, on ``robot=grammar``) the sizes are
+    the features per token and the padded number of tokens (:func:`probe_dimensions`); the
+    normaliser is a ``TokenNorm`` whose statistics count real tokens only.
+    """
     algo = cfg.algo
-    actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
-    normalizer = make_observation_norm(observation_dim)
+    if policy_architecture(cfg) in TOKEN_POLICIES:
+        actor, critic = make_token_actor_critic(cfg, observation_dim, action_dim)
+        normalizer, statistics = make_token_norm(observation_dim), TokenObservationStatistics(observation_dim)
+        statistics_keys = (TOKENS, TOKEN_MASK)
+    else:
+        actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
+        normalizer, statistics = make_observation_norm(observation_dim), ObservationStatistics(observation_dim)
+        statistics_keys = ("observation",)
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
     updater = TRPOUpdater(
         loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
         critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
     )
-    return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor),
-                       ObservationStatistics(observation_dim), algo.normalizer_refresh, algo.max_consecutive_skips)
+    return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor), statistics,
+                       algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)
 
 
 def off_policy_settings(cfg: DictConfig) -> OffPolicySettings:
@@ -218,13 +251,22 @@ def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Lear
 
 def make_trust_region(cfg: DictConfig) -> TrustRegion:
     algo = cfg.algo
+    # (a config from before fisher_fraction computes the Fisher product on the whole batch, as it did)
     return TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
-                       backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks)
+                       backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
+                       fisher_fraction=algo.get("fisher_fraction", 1.0))
 
 
 def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:
-    """Observation and action sizes of the configured robot (one robot built and closed)."""
-    probe = BatchedWalkerEnv(1, **env_kwargs(cfg))
-    dims = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    """The policy's sizes for the configured robot (one robot built and closed): the flat
+    observation and action sizes of the vertebrate, or for ``robot=grammar`` the features per
+    link token ``F`` and the padded number of tokens ``L`` (one action slot per token). A
+    checkpoint keeps them as ``observation_dim`` and ``action_dim``."""
+    env_class, kwargs = env_builder(cfg)
+    probe = env_class(1, **kwargs)
+    if env_class is BatchedWalkerEnv:
+        dims = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    else:
+        dims = tuple(probe.observation_spec[TOKENS].shape[-2:])[::-1]
     probe.close()
     return dims

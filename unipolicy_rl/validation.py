@@ -24,9 +24,12 @@ from omegaconf import DictConfig
 
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
+from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
+from unipolicy_rl.envs.morphology import SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
+from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES
 
 
 def _integer(minimum: int) -> Callable[[object], str | None]:
@@ -55,6 +58,14 @@ def _flag(value) -> str | None:
 
 def _one_of(choices) -> Callable[[object], str | None]:
     return lambda value: None if value in choices else f"must be one of {sorted(choices)}"
+
+
+def _optional(rule: Callable[[object], str | None]) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        problem = None if value is None else rule(value)
+        return None if problem is None else f"{problem} or null"
+
+    return check
 
 
 def _sizes(value) -> str | None:
@@ -97,9 +108,25 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "evaluation.then_every_steps": POSITIVE,
     "evaluation.grid": POSITIVE,
     "evaluation.episodes": POSITIVE,
-    "robot.observation": _one_of(set(OBSERVATIONS)),
-    "robot.append_design": _flag,
+    "evaluation.morphologies": _one_of(set(GRAMMAR_SIDES)),  # read by robot=grammar only
+    "evaluation.morphology_grid": POSITIVE,
+    "policy.name": _one_of(set(FLAT_POLICIES + TOKEN_POLICIES)),
     "robot.episode_length": POSITIVE,
+}
+
+# robot kind -> rules of the keys only that robot has (the grammar's split checks itself when built).
+ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
+    "vertebrate": {
+        "robot.observation": _one_of(set(OBSERVATIONS)),
+        "robot.append_design": _flag,
+    },
+    "grammar": {
+        "robot.morphologies": _one_of(set(GRAMMAR_SIDES)),
+        "robot.sampling": _one_of(set(SAMPLINGS)),
+        "robot.max_links": _optional(POSITIVE),
+        "robot.design_in_tokens": _flag,
+        "robot.evaluation_every_steps": POSITIVE,
+    },
 }
 
 
@@ -127,6 +154,35 @@ def _equal_shares(cfg: DictConfig) -> str | None:
     return None
 
 
+def _known_robot(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) not in ROBOT_KINDS:
+        return f"robot.kind must be one of {list(ROBOT_KINDS)}, got {robot_kind(cfg)!r}"
+    return None
+
+
+def _policy_reads_the_robot(cfg: DictConfig) -> str | None:
+    """A flat policy needs the vertebrate's observation, a token policy the grammar's tokens."""
+    name = cfg.policy.name
+    if robot_kind(cfg) == "grammar" and name in FLAT_POLICIES:
+        return (f"policy={name} reads one robot's flat observation, but robot=grammar observes robots of many "
+                f"morphologies as padded link tokens: use a token policy (policy={' or policy='.join(TOKEN_POLICIES)})")
+    if robot_kind(cfg) != "grammar" and name in TOKEN_POLICIES:
+        return (f"policy={name} reads link tokens, which robot={robot_kind(cfg)} does not write: train it with "
+                f"robot=grammar (the vertebrate is one of the grammar's morphologies), or use policy=mlp here")
+    return None
+
+
+def _grammar_learns_model_free_with_trpo(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) != "grammar":
+        return None
+    if cfg.source.kind == "model":
+        return (f"source={cfg.source.get('name', cfg.source.kind)} fits a world model, and robot=grammar has none "
+                f"yet (one conditioned on the morphology is future work): use a real source (source=se or source=de)")
+    if cfg.algo.name != "trpo":
+        return f"algo={cfg.algo.name} with robot=grammar: the token policies are TRPO's Gaussians, use algo=trpo"
+    return None
+
+
 def _model_source_groups(cfg: DictConfig) -> str | None:
     if cfg.source.kind == "model":
         for group in ("world_model", "imagination"):
@@ -141,6 +197,9 @@ def _model_source_groups(cfg: DictConfig) -> str | None:
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("episodes_per_epoch", "workers"): _equal_shares,
     ("source.kind", "world_model", "imagination"): _model_source_groups,
+    ("robot",): _known_robot,
+    ("robot", "policy.name"): _policy_reads_the_robot,
+    ("robot", "source.kind", "algo.name"): _grammar_learns_model_free_with_trpo,
 }
 
 
@@ -151,7 +210,9 @@ def check_settings(cfg: DictConfig, *keys: str) -> None:
     :func:`validate_config` runs every rule; a library entry point that reads a few plain
     settings runs theirs here, so it fails as clearly without validate_config having run.
     """
-    rules = {**RULES, **ALGO_RULES.get(_get(cfg, "algo.name"), {})} if "algo.name" in keys else RULES
+    rules = {**RULES, **ROBOT_RULES.get(robot_kind(cfg), {})}
+    if "algo.name" in keys:
+        rules.update(ALGO_RULES.get(_get(cfg, "algo.name"), {}))
     for key in keys:
         if key in rules:
             value = _get(cfg, key)
@@ -168,7 +229,8 @@ def check_settings(cfg: DictConfig, *keys: str) -> None:
 def validate_config(cfg: DictConfig) -> None:
     """Raises ValueError naming the first bad setting of ``cfg`` (key and value)."""
     algo_keys = ALGO_RULES.get(cfg.algo.name, {})
-    check_settings(cfg, *RULES, *algo_keys, *(key for joint in JOINT_RULES for key in joint))
+    robot_keys = ROBOT_RULES.get(robot_kind(cfg), {})
+    check_settings(cfg, *RULES, *algo_keys, *robot_keys, *(key for joint in JOINT_RULES for key in joint))
     # Imported here: factories imports the whole training stack.
     from unipolicy_rl.collectors.imagination import check_stopping_rule
     from unipolicy_rl.envs import DesignDistribution
@@ -179,7 +241,14 @@ def validate_config(cfg: DictConfig) -> None:
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
     _built("design", lambda: instantiate(cfg.design))
-    _built("robot.settings", lambda: instantiate(cfg.robot.settings, _convert_="all"))
+    if robot_kind(cfg) == "grammar":
+        from unipolicy_rl.envs.config import morphology_env_kwargs
+
+        # The split (drawn once per process), its side and the padding; then the evaluated side.
+        _built("robot", lambda: morphology_env_kwargs(cfg))
+        _built("evaluation.morphologies", lambda: morphology_env_kwargs(cfg, cfg.evaluation.morphologies))
+    else:
+        _built("robot.settings", lambda: instantiate(cfg.robot.settings, _convert_="all"))
     _built("robot.physics", lambda: instantiate(cfg.robot.physics))
     _built("robot.reward", lambda: instantiate(cfg.robot.reward))
     _built("algo", lambda: learner_settings(cfg))

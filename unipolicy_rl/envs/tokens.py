@@ -44,6 +44,9 @@ Padding tokens are all zeros.
 
 from __future__ import annotations
 
+import torch
+from tensordict import TensorDictBase
+
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
 from unipolicy_rl.robots.grammar.parts import LINK_KINDS
 
@@ -69,3 +72,11 @@ FEATURE_INDEX: dict[str, int] = {name: index for index, name in enumerate(TOKEN_
 
 # The root token is read by the reward as an observation of the thesis layout.
 assert [FEATURE_INDEX[name] for name in ("x", "y", "z", "vx")] == [BASE_X, BASE_Y, BASE_Z, BASE_X_DOT]
+
+
+def walking_observation(tensordict: TensorDictBase) -> torch.Tensor:
+    """What ``walking_reward`` and ``forward_displacement`` read from a step of either env: the
+    root token (the thesis layout's first six numbers) of a token env, else the flat ``observation``."""
+    if TOKENS in tensordict.keys():
+        return tensordict.get(TOKENS)[..., 0, :]
+    return tensordict.get("observation")

@@ -16,10 +16,12 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.envs import BatchedWalkerEnv, Design
 from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
+from unipolicy_rl.envs.tokens import MORPHOLOGY, walking_observation
 
 # A design "walks" when its base gets at least this far forward in one episode (m).
 WALKING_DISPLACEMENT = 1.0
@@ -59,8 +61,10 @@ class DesignResult:
         return Design(self.length, self.density)
 
 
-def rollout_designs(env: BatchedWalkerEnv, policy, designs: Sequence[Design]) -> TensorDictBase:
-    """Resets every robot of ``env`` to its own design and rolls out exactly one episode.
+def rollout_designs(env: EnvBase, policy, designs: Sequence[Design],
+                    morphologies: Sequence[int] | None = None) -> TensorDictBase:
+    """Resets every robot of ``env`` to its own design (and, in a ``MorphologyWalkerEnv``, to its
+    own morphology: an index into the env's set) and rolls out exactly one episode.
 
     Returns the rollout, shape [num_robots, steps]. A robot that finishes early (a physics
     fault) has its later entries frozen at its last step by TorchRL's partial-step logic;
@@ -73,6 +77,10 @@ def rollout_designs(env: BatchedWalkerEnv, policy, designs: Sequence[Design]) ->
     # 0.15 should stay 0.15 rather than become 0.15000000596.
     requested = torch.tensor([(d.length, d.density) for d in designs], dtype=torch.float64, device=env.device)
     reset_request = TensorDict({"design": requested}, batch_size=env.batch_size, device=env.device)
+    if morphologies is not None:
+        if len(morphologies) != num_robots:
+            raise ValueError(f"need one morphology per robot: got {len(morphologies)} for {num_robots} robots")
+        reset_request[MORPHOLOGY] = torch.tensor(list(morphologies), dtype=torch.int64, device=env.device)[:, None]
     start = env.reset(reset_request)
     return env.rollout(
         env.episode_length,
@@ -95,7 +103,7 @@ def episode_outcomes(rollout: TensorDictBase, control_period: float) -> dict[str
     in_episode = steps_taken <= last.unsqueeze(-1)
     rows = torch.arange(done.shape[0], device=done.device)
     reward = (rollout["next", "reward"].squeeze(-1) * in_episode).sum(-1)
-    displacement = forward_displacement(rollout["next", "observation"][rows, last])
+    displacement = forward_displacement(walking_observation(rollout["next"])[rows, last])
     steps = last + 1
     return {
         "episode_reward": reward.double().cpu(),
@@ -106,25 +114,32 @@ def episode_outcomes(rollout: TensorDictBase, control_period: float) -> dict[str
     }
 
 
-def _check_designs_were_used(rollout: TensorDictBase, designs: Sequence[Design]) -> None:
-    # A wrapper that drops the reset's "design" key would silently evaluate random
-    # designs under the requested labels; this guard makes that loud.
+def _check_designs_were_used(rollout: TensorDictBase, designs: Sequence[Design],
+                             morphologies: Sequence[int] | None = None) -> None:
+    # A wrapper that drops the reset's "design" (or "morphology") key would silently evaluate
+    # random robots under the requested labels; this guard makes that loud.
     requested = torch.tensor([(d.length, d.density) for d in designs], dtype=torch.float32)
     used = rollout["design"][:, 0].cpu()
     if not torch.allclose(used, requested):
         raise RuntimeError(
             f"the env did not use the requested designs: asked {requested.tolist()}, got {used.tolist()}"
         )
+    if morphologies is not None and rollout[MORPHOLOGY][:, 0, 0].tolist() != list(morphologies):
+        raise RuntimeError(f"the env did not use the requested morphologies: asked {list(morphologies)}, got "
+                           f"{rollout[MORPHOLOGY][:, 0, 0].tolist()}")
 
 
 def design_rollouts(policy, env_kwargs: dict, designs: Sequence[Design], num_robots: int | None = None, seed: int = 0,
-                    deterministic: bool = True,
-                    progress: str | None = None) -> Iterator[tuple[list[Design], TensorDictBase, float]]:
+                    deterministic: bool = True, progress: str | None = None, *,
+                    env_class: type[EnvBase] = BatchedWalkerEnv,
+                    morphologies: Sequence[int] | None = None) -> Iterator[tuple[list[Design], TensorDictBase, float]]:
     """One episode of ``policy`` per design, ``num_robots`` at a time: yields each batch's designs,
     its rollout (``[num_robots, steps]``; a short last batch is padded with copies of its last
     design, whose rows follow the batch's) and the env's control period.
 
-    ``progress``: a progress bar with this label, or None for none.
+    ``progress``: a progress bar with this label, or None for none. ``env_class`` is built with
+    ``env_kwargs``; for a ``MorphologyWalkerEnv``, ``morphologies`` gives each design's robot
+    (an index into the env's set, one per design).
     """
     if "num_robots" in env_kwargs:
         raise ValueError("env_kwargs must not set num_robots: pass it as num_robots=...")
@@ -132,7 +147,9 @@ def design_rollouts(policy, env_kwargs: dict, designs: Sequence[Design], num_rob
     num_robots = num_robots or min(len(designs), DEFAULT_MAX_ROBOTS)
     if not (isinstance(num_robots, int) and num_robots >= 1):
         raise ValueError(f"num_robots must be a positive integer, got {num_robots!r}")
-    env = BatchedWalkerEnv(num_robots=num_robots, **env_kwargs)
+    if morphologies is not None and len(morphologies) != len(designs):
+        raise ValueError(f"need one morphology per design: got {len(morphologies)} for {len(designs)} designs")
+    env = env_class(num_robots=num_robots, **env_kwargs)
     env.set_seed(seed)
     batches = range(0, len(designs), num_robots)
     if progress is not None:
@@ -146,8 +163,12 @@ def design_rollouts(policy, env_kwargs: dict, designs: Sequence[Design], num_rob
             for start in batches:
                 batch = designs[start : start + num_robots]
                 padded = batch + [batch[-1]] * (num_robots - len(batch))
-                rollout = rollout_designs(env, policy, padded)
-                _check_designs_were_used(rollout, padded)
+                robots = None
+                if morphologies is not None:
+                    robots = list(morphologies[start : start + num_robots])
+                    robots += [robots[-1]] * (num_robots - len(robots))
+                rollout = rollout_designs(env, policy, padded, robots)
+                _check_designs_were_used(rollout, padded, robots)
                 yield batch, rollout, env.control_period
     finally:
         env.close()

@@ -36,10 +36,11 @@ class Learner(Protocol):
         """Learns from ``batch`` (``[*envs, time]``, real or imagined); returns flat float metrics."""
         ...
 
-    def refresh_observation_normalizer(self, observations: torch.Tensor) -> dict[str, float]:
-        """Adds one epoch's real ``observations`` to the normaliser's statistics and moves the
-        normaliser to them (it stays fixed within an epoch); returns metrics of what that did to
-        the policy (e.g. the KL between the policy before and after)."""
+    def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
+        """Adds the observations of one epoch's real ``batch`` (the raw keys the policy reads) to
+        the normaliser's statistics and moves the normaliser to them (it stays fixed within an
+        epoch); returns metrics of what that did to the policy (e.g. the KL between the policy
+        before and after)."""
         ...
 
     def policy_state(self) -> dict:

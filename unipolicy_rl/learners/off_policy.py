@@ -265,7 +265,8 @@ class OffPolicyLearner:
                 "alpha": self.loss.log_alpha.detach().exp().item(),
                 "entropy": float(losses.get("entropy", torch.tensor(math.nan)).detach())}
 
-    def refresh_observation_normalizer(self, observations: torch.Tensor) -> dict[str, float]:
+    def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
+        observations = batch["observation"]
         probe = observation_probe(observations)
         with torch.no_grad():
             before = self._gaussian(probe)

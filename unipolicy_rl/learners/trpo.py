@@ -5,6 +5,12 @@ The parts are :class:`~unipolicy_rl.objectives.TRPOLoss` and
 observation normaliser and its statistics (refreshed between epochs, see
 :mod:`unipolicy_rl.observation_statistics`), the stop when updates keep being skipped, and one
 state to checkpoint.
+
+The same class trains the flat policy and the token policies of ``robot=grammar``: what differs
+is read off the policy (the raw keys it reads: its normaliser's input and the actor's other
+inputs, such as the token and action masks) and told by ``statistics_keys`` (what the
+statistics merge: the flat observation, or the tokens with their mask, so padding counts for
+nothing).
 """
 
 from __future__ import annotations
@@ -12,9 +18,10 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.learners.base import StalledLearning, observation_probe, policy_state
+from unipolicy_rl.learners.base import StalledLearning, policy_state
 from unipolicy_rl.objectives import TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 
@@ -31,12 +38,16 @@ class TRPOLearner:
         normalizer_refresh: ``preserve`` or ``jump`` (:func:`refresh_normalizer`).
         max_consecutive_skips: raise :class:`StalledLearning` after this many updates in a row
             skipped their policy step or critic fit.
+        statistics_keys: the batch entries ``statistics.update`` takes, in order: the flat
+            ``observation``, or the tokens and their mask for
+            :class:`~unipolicy_rl.token_statistics.TokenObservationStatistics`.
     """
 
     def __init__(self, actor: TensorDictModuleBase, critic: TensorDictModuleBase, updater: TRPOUpdater,
                  normalizer: ObservationNorm, policy: TensorDictModuleBase,
                  statistics: ObservationStatistics, normalizer_refresh: str = "preserve",
-                 max_consecutive_skips: int = 25) -> None:
+                 max_consecutive_skips: int = 25, *,
+                 statistics_keys: tuple[NestedKey, ...] = ("observation",)) -> None:
         self.actor, self.critic = actor, critic
         self.updater = updater
         self.loss = updater.loss_module
@@ -45,10 +56,18 @@ class TRPOLearner:
         self.statistics = statistics
         self.normalizer_refresh = normalizer_refresh
         self.max_consecutive_skips = max_consecutive_skips
+        self.statistics_keys = tuple(statistics_keys)
+        # The raw observation keys the policy reads: the normaliser's input, and the actor's and
+        # critic's other inputs (masks, parents), which the probe of a refresh must carry too.
+        normalized = set(normalizer.out_keys)
+        readers = [key for network in (actor, critic) for key in network.in_keys if key not in normalized]
+        self.observation_keys = tuple(dict.fromkeys([*normalizer.in_keys, *readers]))
         keys = self.loss.tensor_keys
-        self.batch_keys = ("observation", keys.action, keys.sample_log_prob, *self.loss.actor_network.dist_params_keys,
-                           ("next", "observation"), ("next", keys.reward), ("next", keys.done),
-                           ("next", keys.terminated))
+        # (dict.fromkeys: an entry both observed and a distribution parameter, the action mask, once)
+        self.batch_keys = tuple(dict.fromkeys((
+            *self.observation_keys, keys.action, keys.sample_log_prob, *self.loss.actor_network.dist_params_keys,
+            *(("next", key) for key in self.observation_keys), ("next", keys.reward), ("next", keys.done),
+            ("next", keys.terminated))))
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         self.normalizer(batch["next"])  # the critic's input at the next states, as the policy saw them
@@ -58,12 +77,13 @@ class TRPOLearner:
                                   f"({'; '.join(self.updater.skip_reasons)})")
         return metrics
 
-    def refresh_observation_normalizer(self, observations: torch.Tensor) -> dict[str, float]:
-        """The trust region does not bound what a refresh does to the policy: its KL is logged."""
-        probe = observation_probe(observations)
+    def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
+        """The trust region does not bound what a refresh does to the policy: its KL (on the
+        batch's observations, with their masks) is logged."""
+        probe = batch.select(*self.observation_keys).reshape(-1)
         with torch.no_grad():
             before = self.loss.policy_distribution(self.normalizer(probe.clone()))
-            self.statistics.update(observations)
+            self.statistics.update(*(probe.get(key) for key in self.statistics_keys))
             refresh_normalizer(self.statistics, self.normalizer, (self.actor, self.critic), self.normalizer_refresh)
             after = self.loss.policy_distribution(self.normalizer(probe.clone()))
             return {"train/refresh_kl": self.loss.mean_kl(before, after).item()}

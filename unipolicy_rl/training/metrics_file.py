@@ -42,8 +42,11 @@ GRID_MEAN = EVAL_PREFIX + "grid_mean_displacement"  # mean forward displacement 
 GRID_MIN = EVAL_PREFIX + "grid_min_displacement"  # the worst design's forward displacement (m)
 GRID_WALKING = EVAL_PREFIX + "walking_designs"  # designs that walk
 GRID_REWARD = EVAL_PREFIX + "grid_mean_reward"  # mean episode reward over the grid
+# robot=grammar: the columns above are over every (morphology, design) cell; these per morphology.
+WALKING_MORPHOLOGIES = EVAL_PREFIX + "walking_morphologies"  # morphologies whose own grid mean walks
+WORST_MORPHOLOGY_MEAN = EVAL_PREFIX + "worst_morphology_mean_displacement"  # the lowest morphology grid mean (m)
 # The evaluations' own cost so far, cumulative over the run (never counted in real_env_steps).
-EVAL_EPISODES = EVAL_PREFIX + "episodes"  # evaluation episodes run (one per grid design per evaluation)
+EVAL_EPISODES = EVAL_PREFIX + "episodes"  # evaluation episodes run (one per grid cell per evaluation)
 EVAL_ENV_STEPS = EVAL_PREFIX + "env_steps"  # their env steps: episodes x episode length (a faulted one counts whole)
 
 # -- model-based sources -----------------------------------------------------------------

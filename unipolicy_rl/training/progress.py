@@ -14,9 +14,20 @@ from tensordict import TensorDictBase
 
 from unipolicy_rl.checkpoint import load_policy
 from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.envs.config import env_kwargs
+from unipolicy_rl.envs.config import env_kwargs, morphology_env_kwargs, robot_kind
 from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
-from unipolicy_rl.evaluation import evaluate_on_designs, grid_score, plot_heatmaps, summarise, write_csv
+from unipolicy_rl.envs.tokens import walking_observation
+from unipolicy_rl.evaluation import (
+    evaluate_on_designs,
+    evaluate_on_morphologies,
+    grid_score,
+    plot_heatmaps,
+    summarise,
+    summarise_morphologies,
+    write_csv,
+    write_morphology_csvs,
+)
+from unipolicy_rl.evaluation.morphologies import MORPHOLOGY_COLUMNS, append_csv, morphology_rows
 from unipolicy_rl.evaluation.plots import plot_training_curve
 from unipolicy_rl.learners.base import StalledLearning
 from unipolicy_rl.training import metrics_file as columns
@@ -26,7 +37,7 @@ from unipolicy_rl.training.metrics_file import MetricsCSV
 def episode_metrics(batch: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
     """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended."""
     done = batch["next", "done"].squeeze(-1)
-    displacement = forward_displacement(batch["next", "observation"])[done].mean().item()
+    displacement = forward_displacement(walking_observation(batch["next"]))[done].mean().item()
     control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
     return {
         columns.REWARD: batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
@@ -37,10 +48,35 @@ def episode_metrics(batch: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
     }
 
 
-def evaluation_designs(cfg: DictConfig) -> list:
-    """The evaluation grid: ``evaluation.grid`` designs per axis over the evaluation ranges."""
-    grid = cfg.evaluation
-    return DesignDistribution(tuple(grid.length_range), tuple(grid.density_range)).grid(grid.grid)
+def evaluation_designs(cfg: DictConfig, grid: int | None = None) -> list:
+    """The evaluation grid: ``grid`` (default ``evaluation.grid``) designs per axis over the evaluation ranges."""
+    settings = cfg.evaluation
+    return DesignDistribution(tuple(settings.length_range), tuple(settings.density_range)).grid(
+        settings.grid if grid is None else grid)
+
+
+# robot=grammar: the periodic evaluation's per-morphology rows, in the run's evaluation folder.
+PERIODIC_MORPHOLOGIES = Path("evaluation") / "periodic_morphologies.csv"
+
+
+class MorphologyGrid:
+    """``robot=grammar``'s evaluation: every morphology of ``evaluation.morphologies`` (the
+    training side by default; ``held_out`` or ``all`` for zero-shot transfer) over a design grid,
+    deterministic policy, one episode per cell. :meth:`__call__` returns the summary over all cells
+    (:func:`~unipolicy_rl.evaluation.summarise_morphologies`) and the per-morphology results."""
+
+    def __init__(self, cfg: DictConfig, grid: int) -> None:
+        self.env_kwargs = morphology_env_kwargs(cfg, cfg.evaluation.morphologies)
+        self.designs = evaluation_designs(cfg, grid)
+        self.seed = cfg.seed
+
+    @property
+    def cells(self) -> int:
+        return len(self.env_kwargs["morphologies"]) * len(self.designs)
+
+    def __call__(self, policy, progress: bool = False):
+        results = evaluate_on_morphologies(policy, self.env_kwargs, self.designs, seed=self.seed, progress=progress)
+        return summarise_morphologies(results), results
 
 
 def evaluation_points(real_env_steps: int, every_steps: int, dense_until: int, then_every_steps: int) -> int:
@@ -95,14 +131,24 @@ class PeriodicEvaluation:
     cumulative over the run (``eval/episodes``, ``eval/env_steps``): evaluation episodes are
     never training steps, and nothing trains on them.
 
+    For ``robot=grammar`` the grid is every morphology of ``evaluation.morphologies`` over an
+    ``evaluation.morphology_grid`` design grid (:class:`MorphologyGrid`); the ``eval/`` columns are
+    then over every (morphology, design) cell, two more say how many morphologies walk and the
+    worst one's grid mean, and each morphology's row goes to ``evaluation/periodic_morphologies.csv``
+    in ``run_dir``.
+
     Args:
         cfg: the run's config.
         best: the best evaluation of the run so far (a resumed run's), or None.
+        run_dir: the run folder (where a grammar run's per-morphology rows go), or None for none.
     """
 
-    def __init__(self, cfg: DictConfig, best: dict | None = None) -> None:
+    def __init__(self, cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> None:
         self.cfg = cfg
-        self.designs = evaluation_designs(cfg)
+        self.morphology_grid = MorphologyGrid(cfg, cfg.evaluation.morphology_grid) \
+            if robot_kind(cfg) == "grammar" else None
+        self.designs = evaluation_designs(cfg) if self.morphology_grid is None else self.morphology_grid.designs
+        self.run_dir = run_dir
         self.best = best
         self.improved = False  # whether the last evaluation became the best
 
@@ -125,10 +171,20 @@ class PeriodicEvaluation:
         epoch_steps = self.cfg.episodes_per_epoch * self.cfg.robot.episode_length  # this epoch's real steps
         if not self.due(real_env_steps, epoch_steps):
             return {}
-        results = evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
-                                      seed=self.cfg.seed)
-        summary = summarise(results)
-        episodes = evaluations_done(real_env_steps, epoch_steps, *self.schedule) * len(self.designs)
+        extra = {}
+        if self.morphology_grid is None:
+            summary = summarise(evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
+                                                    seed=self.cfg.seed))
+            cells = len(self.designs)
+        else:
+            summary, results = self.morphology_grid(policy)
+            cells = self.morphology_grid.cells
+            extra = {columns.WALKING_MORPHOLOGIES: float(summary["walking_morphologies"]),
+                     columns.WORST_MORPHOLOGY_MEAN: summary["worst_morphology_mean_displacement"]}
+            if self.run_dir is not None:
+                rows = [{"epoch": epoch, "real_env_steps": real_env_steps, **row} for row in morphology_rows(results)]
+                append_csv(self.run_dir / PERIODIC_MORPHOLOGIES, rows, ("epoch", "real_env_steps", *MORPHOLOGY_COLUMNS))
+        episodes = evaluations_done(real_env_steps, epoch_steps, *self.schedule) * cells
         metrics = {
             columns.GRID_MEAN: summary["mean_forward_displacement"],
             columns.GRID_MIN: summary["min_forward_displacement"],
@@ -136,6 +192,7 @@ class PeriodicEvaluation:
             columns.GRID_REWARD: summary["mean_episode_reward"],
             columns.EVAL_EPISODES: float(episodes),
             columns.EVAL_ENV_STEPS: float(episodes * self.cfg.robot.episode_length),
+            **extra,
         }
         evaluation = {"epoch": epoch, "grid_mean": metrics[columns.GRID_MEAN], "grid_min": metrics[columns.GRID_MIN]}
         if self.best is None or (grid_score(evaluation["grid_mean"], evaluation["grid_min"])
@@ -146,17 +203,25 @@ class PeriodicEvaluation:
 
 def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title: str) -> dict:
     """The saved policy on the evaluation grid (``evaluation.episodes`` per design): CSV, heatmaps,
-    the training curve, and the summary."""
-    loaded = load_policy(checkpoint_path)
-    results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), evaluation_designs(cfg),
-                                  episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
+    the training curve, and the summary. For ``robot=grammar``: every morphology of
+    ``evaluation.morphologies`` on the ``evaluation.grid`` design grid (deterministic, one episode
+    per cell), ``morphologies.csv`` (one row per morphology) and ``designs.csv`` (one per cell), and
+    the summary over all cells with the per-morphology figures."""
     out = run_dir / "evaluation"
-    write_csv(results, out / "designs.csv")
-    plot_heatmaps(results, out, title=f"{title} seed {cfg.seed}")
+    loaded = load_policy(checkpoint_path)
+    if robot_kind(cfg) == "grammar":
+        summary, results = MorphologyGrid(cfg, cfg.evaluation.grid)(loaded.policy, progress=True)
+        write_morphology_csvs(results, out)
+    else:
+        results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), evaluation_designs(cfg),
+                                      episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
+        write_csv(results, out / "designs.csv")
+        plot_heatmaps(results, out, title=f"{title} seed {cfg.seed}")
+        summary = summarise(results)
     metrics_csv = run_dir / columns.FILE_NAME
     if metrics_csv.is_file():
         plot_training_curve(metrics_csv, out / "training_curve.png")
-    return summarise(results)
+    return summary
 
 
 # What the progress bar shows: real steps, real and imagined reward, model fit, grid walk.
