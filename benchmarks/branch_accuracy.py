@@ -3,6 +3,7 @@
     python benchmarks/branch_accuracy.py <run dir or checkpoint.pt of a model-based run>
         [--fit-transitions 30000] [--test-transitions 10000] [--horizons 1 3 8 25] [--starts 2000]
         [--models pce moe]
+    python benchmarks/branch_accuracy.py --episodes 64 --fit-transitions 4800 --test-transitions 1600 ...
 
 ``model_accuracy.py`` and ``surrogate_accuracy.py`` measure surrogates on episodes of a
 scripted gait and of random actions, from the episode start. Training meets a surrogate
@@ -27,11 +28,22 @@ each branch out with its mean prediction, and Spearman's rank correlation is tak
 members' spread (standard deviation) of the predicted displacement and the error of their mean
 (``spread_rank_correlation``; 0: the spread says nothing, 1: it orders the branches by error).
 One thread (accuracy does not depend on it).
+
+A model in ``--models`` is a world_model yaml with settings of its ``world_model.model``:
+``NAME[:key=value,...]`` (``pce:lags=1``, ``pce_sparse:order=4,tolerance=0.05``). A model with
+memory columns (``lags``: PC-NARX) gets them from the buffer's own chain of steps
+(:func:`in_model_view`), so its branches start with their real past. ``--episodes N`` takes the
+N cached gait-plus-noise episodes of the other world-model benchmarks (``world_model_setup.py``)
+instead of a run's buffer: cheap, but not a policy's data. A summary table closes the output:
+per model, the one-step validation error, the fit time and the deterministic displacement error
+at each horizon (and its ratio to ``moe``'s at 8 steps where ``moe`` is among the models).
+``pce_selection.py`` ranks candidate settings with the same machinery.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from pathlib import Path
 
@@ -45,6 +57,7 @@ from unipolicy_rl.envs import RobotSettings
 from unipolicy_rl.evaluation.accuracy import THESIS_FLOOR, relative_error
 from unipolicy_rl.world_models import StateLayout
 from unipolicy_rl.world_models.imagined import PredictNextState
+from unipolicy_rl.world_models.trainer import EPISODE_START
 
 X, X_DOT = 0, 3  # base forward position and velocity in the state
 
@@ -67,6 +80,87 @@ def buffer_of(path: Path) -> TensorDict:
         cursor = int(buffer["_writer"]["_cursor"])
         data = torch.cat([data[cursor:], data[:cursor]])
     return data
+
+
+def in_model_view(model, rows: TensorDict) -> TensorDict:
+    """``rows`` (real transitions, oldest first, the robot's state only) with ``model``'s memory
+    columns appended to ``state`` and ``next_state`` (``model.memory_of`` on the rows as one long
+    row whose episodes end where the chain of steps breaks; see :func:`branch_starts`); the rows
+    themselves for a model without memory."""
+    if model.layout.memory_size == 0:
+        return rows
+    broken = (rows["state"][1:] != rows["next_state"][:-1]).any(-1)
+    if EPISODE_START in rows.keys():
+        broken |= rows[EPISODE_START][1:].reshape(-1).bool()
+    done = torch.cat([broken, torch.ones(1, dtype=torch.bool)]).reshape(1, -1, 1)
+    chain = TensorDict({"state": rows["state"][None], "action": rows["action"][None],
+                        ("next", "state"): rows["next_state"][None], ("next", "done"): done}, [1, len(rows)])
+    before, after = model.memory_of(chain)
+    viewed = rows.clone()
+    viewed["state"] = torch.cat([rows["state"], before[0]], -1)
+    viewed["next_state"] = torch.cat([rows["next_state"], after[0]], -1)
+    return viewed
+
+
+def real_data(run: Path | None, episodes: int | None) -> TensorDict:
+    """A run's buffer, or ``episodes`` cached gait-plus-noise episodes as rows (oldest first)."""
+    if (run is None) == (episodes is None):
+        raise ValueError("give a run directory (or checkpoint) or --episodes, not both or neither")
+    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
+    data = buffer_of(run) if run is not None else setup.collect(episodes).transitions(layout.from_full)
+    if data["state"].shape[-1] != layout.size:
+        raise ValueError(f"the buffer's states have {data['state'].shape[-1]} numbers; this benchmark reads the "
+                         f"full state ({layout.size}), the default world_model.model_state")
+    return data
+
+
+def split(data: TensorDict, fit_transitions: int, test_transitions: int) -> tuple[TensorDict, TensorDict]:
+    """(the ``fit_transitions`` rows before the last ``test_transitions``, those last rows)."""
+    if len(data) <= test_transitions:
+        raise ValueError(f"the data hold {len(data)} transitions, not more than --test-transitions {test_transitions}")
+    return data[max(0, len(data) - test_transitions - fit_transitions): len(data) - test_transitions], \
+        data[-test_transitions:]
+
+
+def fit_and_measure(spec: str, data: TensorDict, fit_transitions: int, test_transitions: int, horizons: list[int],
+                    starts: int, seed: int, sampled: bool = True) -> tuple[object, dict]:
+    """Fits model ``spec`` on ``data``'s fit part and measures it on the held-out part: (the fit
+    report, ``{(deterministic, horizon): measure(...)}``)."""
+    torch.manual_seed(seed)
+    model, trainer = setup.configured_spec(spec, threads=1)
+    fit, test = split(in_model_view(model, data), fit_transitions, test_transitions)
+    report = trainer.fit(model, fit, torch.Generator().manual_seed(seed))
+    print(f"{spec}: {model.__class__.__name__}, fit {report.epochs} epoch(s) in {report.seconds:.1f} s, "
+          f"validation MSE (standardised) median {report.validation_error.median():.3f}")
+    results = {}
+    for deterministic in (True, False) if sampled else (True,):
+        for horizon in horizons:
+            started = time.perf_counter()
+            generator = torch.Generator().manual_seed(seed)
+            results[deterministic, horizon] = measure(model, test, horizon, deterministic, starts, generator)
+            print(f"  {'deterministic' if deterministic else 'sampled'}, {horizon} steps: "
+                  f"{results[deterministic, horizon]['branches']} branches in {time.perf_counter() - started:.1f} s")
+    return report, results
+
+
+def summary_rows(reports: dict, results: dict, horizons: list[int], reference: str | None = "moe") -> list[str]:
+    """The summary table's markdown lines: per model the one-step validation error (median of its
+    members), the fit time and the deterministic displacement error per horizon (and the ratio
+    to ``reference``'s at the longest horizon where ``reference`` is among the models)."""
+    last = horizons[-1]
+    ratio = reference in reports
+    lines = ["| model | one-step validation error | fit s | "
+             + " | ".join(f"rel. err. displacement, {k} steps" for k in horizons)
+             + (f" | / {reference} at {last} |" if ratio else " |"),
+             "|---|---|---|" + "---|" * len(horizons) + ("---|" if ratio else "")]
+    for name, report in reports.items():
+        errors = [results[name, True, k]["relative_displacement"] for k in horizons]
+        line = (f"| {name} | {statistics.median(report.validation_error.tolist()):.3f} | {report.seconds:.1f} | "
+                + " | ".join(f"{e:.3f}" for e in errors) + " |")
+        if ratio:
+            line += f" {errors[-1] / results[reference, True, last]['relative_displacement']:.2f} |"
+        lines.append(line)
+    return lines
 
 
 def branch_starts(data: TensorDict, steps: int, count: int, generator: torch.Generator) -> torch.Tensor:
@@ -128,46 +222,32 @@ def spread_rank_correlation(model, start: torch.Tensor, actions: torch.Tensor, d
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a model-based run's directory or its checkpoint.pt")
+    parser.add_argument("run", type=Path, nargs="?", help="a model-based run's directory or its checkpoint.pt")
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="instead of a run: this many cached gait-plus-noise episodes (world_model_setup.py)")
     parser.add_argument("--fit-transitions", type=int, default=30_000)
     parser.add_argument("--test-transitions", type=int, default=10_000)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 8, 25])
     parser.add_argument("--starts", type=int, default=2000, help="branches per horizon")
-    parser.add_argument("--models", nargs="+", default=["pce", "moe"], choices=["pce", "pce_sparse", "moe"],
-                        help="world_model yamls to fit and compare (ratios are against moe when it is among them)")
+    parser.add_argument("--models", nargs="+", default=["pce", "moe"],
+                        help="models to fit and compare, NAME[:key=value,...] (a world_model yaml and settings of "
+                             "its model, e.g. pce:lags=1); ratios are against moe when it is among them")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    data = buffer_of(args.run)
-    if len(data) <= args.test_transitions:
-        raise ValueError(f"the buffer holds {len(data)} transitions, not more than --test-transitions "
-                         f"{args.test_transitions}")
-    test = data[-args.test_transitions:]
-    fit = data[max(0, len(data) - args.test_transitions - args.fit_transitions): len(data) - args.test_transitions]
-    layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
-    if data["state"].shape[-1] != layout.size:
-        raise ValueError(f"the buffer's states have {data['state'].shape[-1]} numbers; this benchmark reads the "
-                         f"full state ({layout.size}), the default world_model.model_state")
-    print(f"{args.run}: {len(data)} buffered real transitions; {len(fit)} fit the models, the last "
-          f"{len(test)} are held out")
+    for spec in args.models:
+        setup.parse_model(spec)  # a bad spec fails before any fit
+    data = real_data(args.run, args.episodes)
+    fit, test = split(data, args.fit_transitions, args.test_transitions)
+    print(f"{args.run or f'{args.episodes} cached episodes'}: {len(data)} real transitions; {len(fit)} fit the "
+          f"models, the last {len(test)} are held out")
     horizons = sorted(set(args.horizons))
-    results = {}
+    results, reports = {}, {}
     for name in args.models:
-        torch.manual_seed(args.seed)
-        model, trainer = setup.configured(name, threads=1)
-        report = trainer.fit(model, fit, torch.Generator().manual_seed(args.seed))
-        print(f"{name}: {model.__class__.__name__}, fit {report.epochs} epoch(s) in {report.seconds:.1f} s, "
-              f"validation MSE (standardised) median {report.validation_error.median():.3f}")
-        for deterministic in (True, False):
-            for horizon in horizons:
-                started = time.perf_counter()
-                generator = torch.Generator().manual_seed(args.seed)
-                results[name, deterministic, horizon] = measure(model, test, horizon, deterministic, args.starts,
-                                                                generator)
-                print(f"  {'deterministic' if deterministic else 'sampled'}, {horizon} steps: "
-                      f"{results[name, deterministic, horizon]['branches']} branches in "
-                      f"{time.perf_counter() - started:.1f} s")
+        reports[name], measured = fit_and_measure(name, data, args.fit_transitions, args.test_transitions, horizons,
+                                                  args.starts, args.seed)
+        results.update({(name, *key): value for key, value in measured.items()})
     print("| model | prediction | k | rel. err. x | rel. err. x_dot | rel. err. displacement | abs. err. x (cm) "
           "| abs. err. x_dot (cm/s) | predictions faulted | spread-error rank correlation |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -175,15 +255,18 @@ def main() -> None:
         print(f"| {name} | {'deterministic' if deterministic else 'sampled'} | {horizon} | {r['relative_x']:.3f} | "
               f"{r['relative_x_dot']:.3f} | {r['relative_displacement']:.3f} | {r['absolute_x_cm']:.2f} | "
               f"{r['absolute_x_dot_cm']:.2f} | {r['faulted']:.2f} | {r['spread_rank_correlation']:.2f} |")
+    # The ensemble to compare with: the first model of the moe yaml, whatever its settings.
+    moe = next((m for m in args.models if setup.parse_model(m)[0] == "moe"), None)
+    print("\n".join(summary_rows(reports, results, horizons, moe)))
     k = 8 if 8 in horizons else horizons[-1]
-    for name in (m for m in args.models if m != "moe"):
+    for name in (m for m in args.models if m != moe):
         pce = results[name, True, k]
         error = pce["relative_displacement"]
         line = (f"{k}-step branches, deterministic: {name} relative error of x {pce['relative_x']:.3f} (target 0.1), "
                 f"of the displacement {error:.3f}")
-        if "moe" in args.models:
-            moe = results["moe", True, k]["relative_displacement"]
-            line += f"; {name} / moe displacement error: {error:.3f} / {moe:.3f} = {error / moe:.2f}"
+        if moe is not None:
+            reference = results[moe, True, k]["relative_displacement"]
+            line += f"; {name} / {moe} displacement error: {error:.3f} / {reference:.3f} = {error / reference:.2f}"
         print(line)
 
 

@@ -1,7 +1,7 @@
 """Imagined steps per second of the default world model against real env steps per second.
 
     python benchmarks/imagination_throughput.py [--repeats 5] [--batches 500x10,200x25,2000x25,5000x25]
-        [--world-model moe] [--disagreement-cut 1.0]
+        [--world-model moe] [--disagreement-cut 1.0] [--deterministic]
 
 The model is ``world_model=moe`` as configured (``conf/world_model/moe.yaml``: a
 :class:`GaussianEnsemble` of 7 members, 3 x 200 SiLU, predicting the full state), given a
@@ -32,7 +32,8 @@ members disagree past ``T`` (``imagination.disagreement_cut``; its scale from th
 transitions), timed in the same repeats; its rows give the cut's steps/s, their paired ratio
 to the uncut rate (every member predicts every step, and cut rows restart), and the share of
 branches it cut. The last line is then ``cut_cost_ratio: <cut / uncut steps per second, 1
-thread, first batch>``.
+thread, first batch>``. ``--deterministic`` imagines with each member's mean, as
+``imagination.deterministic`` does (``world_model=pce``'s default), for every variant.
 """
 
 from __future__ import annotations
@@ -93,6 +94,8 @@ def main() -> None:
     parser.add_argument("--world-model", default="moe", help="the world model's yaml (conf/world_model/)")
     parser.add_argument("--disagreement-cut", type=float, default=None,
                         help="also time each batch with branches cut where members disagree past this")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="imagine with each member's mean prediction (imagination.deterministic)")
     args = parser.parse_args()
     batches = [tuple(int(v) for v in spec.split("x")) for spec in args.batches.split(",")]
     thread_counts = [int(t) for t in args.threads.split(",")]
@@ -102,12 +105,12 @@ def main() -> None:
     model, report, data, policy, starts = setup(args.world_model)
     real = BatchedWalkerEnv(32, full_state=True)
     real.set_seed(0)
-    world_model = make_world_model(model, RewardWeights())
+    world_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic)
     imagined = {batch: ImaginedWalkerEnv(world_model, real, starts, batch[0]) for batch in batches}
     cutting = {}
     if args.disagreement_cut is not None:
         cut = DisagreementCut.from_transitions(args.disagreement_cut, data, model.layout.robot_size)
-        cut_model = make_world_model(model, RewardWeights(), cut=cut)
+        cut_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic, cut=cut)
         cutting = {batch: ImaginedWalkerEnv(cut_model, real, starts, batch[0]) for batch in batches}
     for threads in thread_counts:  # untimed warm-up: robot builds, first allocations
         torch.set_num_threads(threads)
@@ -134,6 +137,7 @@ def main() -> None:
     real.close()
 
     print(f"model: {type(model).__name__} (world_model={args.world_model}), {model.members} members, "
+          f"{'deterministic' if args.deterministic else 'sampled'} imagination, "
           f"{model.layout.size}-number state, fitted {report.epochs} "
           f"epochs on {data.shape[0]} transitions ({report.seconds:.1f} s)")
     print(f"raw PyBullet loop, one core: {statistics.median(raw_rates):.0f} actions/s "

@@ -101,6 +101,29 @@ def configured(world_model: str, threads: int | None = None, max_epochs: int | N
     return model_of(cfg, device), trainer_of(cfg)
 
 
+def parse_model(spec: str) -> tuple[str, tuple[str, ...]]:
+    """A benchmark's model spec ``NAME[:key=value,...]`` -> (the ``world_model`` yaml, overrides of
+    its ``world_model.model``, or of its trainer where the key starts ``trainer.``):
+    ``pce:lags=1,order=4`` is ``world_model=pce`` with ``world_model.model.lags=1
+    world_model.model.order=4``; ``moe:trainer.max_epochs=20`` caps the ensemble's fit."""
+    name, _, settings = spec.partition(":")
+    overrides = []
+    for setting in filter(None, settings.split(",")):
+        key, equals, value = setting.partition("=")
+        if not (key and equals and value):
+            raise ValueError(f"a model spec is NAME[:key=value,...], got {spec!r} (bad setting {setting!r})")
+        overrides.append(f"world_model.{key if key.startswith('trainer.') else f'model.{key}'}={value}")
+    if not (CONF / "world_model" / f"{name}.yaml").exists():
+        raise ValueError(f"model spec {spec!r}: no conf/world_model/{name}.yaml")
+    return name, tuple(overrides)
+
+
+def configured_spec(spec: str, threads: int | None = None) -> tuple[Dynamics, Trainer]:
+    """The model and trainer of a model spec (:func:`parse_model`), as :func:`configured` builds them."""
+    name, overrides = parse_model(spec)
+    return configured(name, threads, overrides=overrides)
+
+
 @dataclass
 class Collection:
     """``episodes``: ``[E, 100]`` with ``state``, ``action``, ``design``, ``("next", "state")`` and

@@ -12,6 +12,7 @@ from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.world_models import (
     CellEnsemble,
+    ClosedFormTrainer,
     DisagreementCut,
     Dynamics,
     GaussianEnsemble,
@@ -22,6 +23,7 @@ from unipolicy_rl.world_models import (
     make_world_model,
 )
 from unipolicy_rl.world_models.disagreement import MemberDisagreement, change_scale, member_predictions
+from unipolicy_rl.world_models.imagined import PredictAndMeasureDisagreement
 
 LAYOUT = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
 X, SPLIT = 0, 4  # the base's x counts the steps; column 4 is where the members part
@@ -88,10 +90,12 @@ def test_the_tiny_model_is_a_dynamics_and_its_disagreement_is_the_gap_from_the_k
     torch.testing.assert_close(measured, torch.tensor([0.0, 0.0, 0.0, GAP, GAP]))
 
 
-def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past_the_threshold(reference):
+@pytest.mark.parametrize("deterministic", [False, True])  # True: one all-member prediction serves both
+def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past_the_threshold(reference,
+                                                                                              deterministic):
     at, horizon = 3, 6
     cut = DisagreementCut(GAP / 2, only_split_scale())
-    world_model = make_world_model(DivergingMembers(at), RewardWeights(), cut=cut)
+    world_model = make_world_model(DivergingMembers(at), RewardWeights(), deterministic=deterministic, cut=cut)
     env = ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=4)
     rollout = env.rollout(horizon, make_actor(18, 4), break_when_any_done=False)
     cut = rollout["next", "disagreement_cut"].squeeze(-1)
@@ -107,14 +111,16 @@ def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past
     assert (rollout["state"][:, at + 1, X] == 0).all()
 
 
-def test_a_threshold_above_the_disagreement_never_cuts(reference):
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_a_threshold_above_the_disagreement_never_cuts(reference, deterministic):
     cut = DisagreementCut(2 * GAP, only_split_scale())
-    world_model = make_world_model(DivergingMembers(2), RewardWeights(), cut=cut)
+    world_model = make_world_model(DivergingMembers(2), RewardWeights(), deterministic=deterministic, cut=cut)
     rollout = ImaginedWalkerEnv(world_model, reference, origin_starts, 3).rollout(5, break_when_any_done=False)
     assert not rollout["next", "done"].any() and (rollout["next", "disagreement"][:, 2:] == GAP).all()
 
 
-def test_imagination_with_the_cut_logs_branch_length_and_the_share_cut(reference):
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_imagination_with_the_cut_logs_branch_length_and_the_share_cut(reference, deterministic):
     n = 50
     state = torch.zeros(n, LAYOUT.size)
     next_state = state.clone()
@@ -124,7 +130,7 @@ def test_imagination_with_the_cut_logs_branch_length_and_the_share_cut(reference
     assert torch.equal(change_scale(transitions, LAYOUT.robot_size) > 0, only_split_scale() > 0)
     scale = float(next_state[:, SPLIT].std(correction=0))
     settings = ImaginationSettings(steps_per_batch=24, horizon=HorizonSchedule(6, 6),
-                                   disagreement_cut=0.5 * GAP / scale,
+                                   disagreement_cut=0.5 * GAP / scale, deterministic=deterministic,
                                    stopping=StoppingRule(kind="fixed", max_updates=1))
     imagination = Imagination(DivergingMembers(at=3), reference, RewardWeights(), settings, seed=0, episode_length=10)
     batch = next(iter(imagination.epoch(1, transitions, make_actor(18, 4))))
@@ -168,10 +174,45 @@ def _real_transitions() -> TensorDict:
                        "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
 
 
-def test_the_imagined_env_with_the_cut_passes_torchrls_checks(reference):
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_the_imagined_env_with_the_cut_passes_torchrls_checks(reference, deterministic):
     cut = DisagreementCut(GAP / 2, only_split_scale())
-    world_model = make_world_model(DivergingMembers(1), RewardWeights(), cut=cut)
+    world_model = make_world_model(DivergingMembers(1), RewardWeights(), deterministic=deterministic, cut=cut)
     check_env_specs(ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=3))
+
+
+@pytest.mark.parametrize("kind", ["pce", "moe"])
+def test_deterministic_steps_with_the_cut_are_the_uncut_steps_and_their_disagreement_the_measured_one(reference,
+                                                                                                      kind):
+    """The shared all-member prediction changes nothing but the cost: every step is the uncut
+    deterministic step (bit for bit for the PCE, whose every-member prediction is the same
+    arithmetic), and its disagreement is MemberDisagreement's of that step."""
+    torch.manual_seed(0)
+    data = _real_transitions()
+    model = (PCEDynamics(LAYOUT, 4, order=2, members=3) if kind == "pce"
+             else GaussianEnsemble(LAYOUT, 4, members=3, elites=2, hidden=(32,)))
+    trainer = ClosedFormTrainer() if kind == "pce" else ModelTrainer(max_epochs=2)
+    trainer.fit(model, data, torch.Generator().manual_seed(0))
+    policy = make_actor(18, 4)
+    scale = change_scale(data, LAYOUT.robot_size)
+
+    def rollout(cut):
+        torch.manual_seed(1)
+        starts = lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design")  # noqa: E731
+        env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), deterministic=True, cut=cut), reference,
+                                starts, 5)
+        return env.rollout(6, policy, break_when_any_done=False)
+
+    uncut, shared = rollout(None), rollout(DisagreementCut(1e9, scale))
+    assert isinstance(make_world_model(model, RewardWeights(), deterministic=True, cut=DisagreementCut(1e9, scale))
+                      .dynamics.module, PredictAndMeasureDisagreement)
+    same = torch.testing.assert_close if kind == "moe" else (lambda a, b: torch.equal(a, b) or pytest.fail(kind))
+    for key in uncut.keys(include_nested=True, leaves_only=True):
+        same(shared[key], uncut[key])
+    measured = MemberDisagreement(model, scale)(uncut["state"].reshape(-1, LAYOUT.size),
+                                                uncut["action"].reshape(-1, 4), uncut["design"].reshape(-1, 2))
+    torch.testing.assert_close(shared["next", "disagreement"].reshape(-1, 1), measured)
+    assert (measured > 0).all()
 
 
 def test_the_pce_predicts_every_member_at_once_as_it_predicts_each():

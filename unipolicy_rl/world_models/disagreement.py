@@ -120,8 +120,12 @@ class MemberDisagreement(nn.Module):
     def forward(self, state, action, design):
         device = self.model.device
         predicted = member_predictions(self.model, state.to(device), action.to(device), design.to(device))
-        spread = predicted[..., :self.inverse_scale.numel()].std(0) * self.inverse_scale.to(device)
-        return (spread.sum(-1, keepdim=True) / self.outputs).to(state.device)
+        return self.of_predictions(predicted).to(state.device)
+
+    def of_predictions(self, predicted: torch.Tensor) -> torch.Tensor:
+        """``[N, 1]``: the disagreement of the voting members' predictions ``[voters, N, size]``."""
+        spread = predicted[..., :self.inverse_scale.numel()].std(0) * self.inverse_scale.to(predicted.device)
+        return spread.sum(-1, keepdim=True) / self.outputs
 
 
 class CutDoneHead(nn.Module):

@@ -63,6 +63,10 @@ def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "mod
         member = model.draw_members(design).to(device)
         predictions = (model.predict(state, action, design, member, deterministic=True) - state).unsqueeze(0)
     change = next_state - state
+    # The robot's outputs only: a model's memory columns (a step count, lagged inputs) are bookkeeping
+    # the model shifts on, not predictions (a lagged change would count the same error twice).
+    robot = model.layout.robot_size
+    predictions, change = predictions[..., :robot], change[..., :robot]
     variance = change.var(0, correction=0)
     signal = variance > MIN_VARIANCE
     if not signal.any():

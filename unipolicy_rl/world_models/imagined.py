@@ -35,6 +35,7 @@ from unipolicy_rl.world_models.disagreement import (
     CutDoneHead,
     DisagreementCut,
     MemberDisagreement,
+    member_predictions,
 )
 from unipolicy_rl.world_models.dynamics import Dynamics
 
@@ -64,10 +65,51 @@ class PredictNextState(nn.Module):
         device = self.model.device
         predicted = self.model.predict(state.to(device), action.to(device), design.to(device),
                                        member.squeeze(-1).to(device), deterministic=self.deterministic).to(state.device)
+        return self.settled(state, predicted, design, member)
+
+    def settled(self, state, predicted, design, member):
+        """The head's outputs for a ``predicted`` next state: a fault keeps ``state`` and says so."""
         # The robot's part only: a model's memory (a step count) is not physics.
         healthy = healthy_rows(predicted[..., :self.model.layout.robot_size]).unsqueeze(-1)
         next_state = torch.where(healthy, predicted, state)
         return next_state, design, member, ~healthy
+
+
+class PredictAndMeasureDisagreement(nn.Module):
+    """The dynamics head of deterministic imagination with the cut: one all-member prediction
+    serves the step and the disagreement.
+
+    Without noise the row's own next state is its member's mean prediction, one of the voting
+    members' mean predictions the disagreement needs anyway (:func:`member_predictions`), so
+    the step is read from them instead of predicted again: ``(state, action, design, member)
+    -> (next state, design, member, fault, disagreement)``. A row whose member does not vote
+    is predicted on its own, as :class:`PredictNextState` would.
+    """
+
+    def __init__(self, model: Dynamics, scale: torch.Tensor, member_per_step: bool = False) -> None:
+        super().__init__()
+        self.step = PredictNextState(model, member_per_step, deterministic=True)
+        self.disagreement = MemberDisagreement(model, scale)
+        self.model = model
+        voters = model.voting_members.cpu()
+        voter_of = torch.full((model.members,), -1, dtype=torch.long)
+        voter_of[voters] = torch.arange(len(voters))
+        self.register_buffer("voter_of", voter_of)  # each member's row in member_predictions (-1: none)
+
+    @torch.no_grad()
+    def forward(self, state, action, design, member):
+        if self.step.member_per_step:
+            member = draw_members(self.model, design).unsqueeze(-1)
+        device = self.model.device
+        state_, action_, design_ = state.to(device), action.to(device), design.to(device)
+        every = member_predictions(self.model, state_, action_, design_)  # [voters, N, size]
+        voter = self.voter_of.to(device)[member.reshape(-1).to(device)]
+        if (voter >= 0).all():
+            predicted = every[voter, torch.arange(every.shape[1], device=device)]
+        else:
+            predicted = self.model.predict(state_, action_, design_, member.reshape(-1).to(device), deterministic=True)
+        outputs = self.step.settled(state, predicted.reshape(state.shape).to(state.device), design, member)
+        return *outputs, self.disagreement.of_predictions(every).to(state.device)
 
 
 def draw_members(model: Dynamics, design: torch.Tensor) -> torch.Tensor:
@@ -112,7 +154,9 @@ def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_
     With ``cut`` the done head also measures the members' disagreement about each step's next
     state (``("next", "disagreement")``) and ends the branch where it passes ``cut.threshold``
     (``("next", "disagreement_cut")``); without it the model is exactly what it was before the
-    cut existed (same keys, same random draws)."""
+    cut existed (same keys, same random draws). With ``cut`` and ``deterministic`` the step and
+    the disagreement share one all-member prediction (:class:`PredictAndMeasureDisagreement`):
+    the cut then costs little more than the step itself."""
     nxt = "next"
     # The encoder is the identity: the real env reports the model's state itself.
     encoder = TensorDictModule(nn.Identity(), in_keys=["state"], out_keys=["state"])
@@ -125,6 +169,14 @@ def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_
     flags = [(nxt, "done"), (nxt, "terminated"), (nxt, "truncated")]
     if cut is None:
         done = TensorDictModule(DoneHead(), in_keys=[(nxt, "physics_fault")], out_keys=flags)
+    elif deterministic:
+        dynamics = TensorDictModule(
+            PredictAndMeasureDisagreement(model, cut.scale, member_per_step),
+            in_keys=["state", "action", "design", "member"],
+            out_keys=[(nxt, "state"), (nxt, "design"), (nxt, "member"), (nxt, "physics_fault"), (nxt, DISAGREEMENT)],
+        )
+        done = TensorDictModule(CutDoneHead(cut.threshold), in_keys=[(nxt, "physics_fault"), (nxt, DISAGREEMENT)],
+                                out_keys=[*flags, (nxt, DISAGREEMENT_CUT)])
     else:
         done = TensorDictSequential(
             TensorDictModule(MemberDisagreement(model, cut.scale), in_keys=["state", "action", "design"],

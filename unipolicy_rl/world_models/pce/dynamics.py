@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import torch
 from tensordict import TensorDictBase
@@ -23,6 +24,7 @@ from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
 from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
 from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.pce.lags import LagMemory, check_lags, episode_starts
 from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
 
 INTERACTIONS = ("all", "controls")
@@ -83,11 +85,15 @@ class PCEDynamics(nn.Module):
         margin: share of each input's data range added on both sides of it.
         ridge: Tikhonov term on the normal equations (per sample, so it does not fade as data grow).
         chunk_size: rows of the design matrix built at once while fitting (memory bound).
+        lags: previous steps whose state change and action are inputs too (PC-NARX,
+            :mod:`~unipolicy_rl.world_models.pce.lags`), carried as memory columns; 0: none.
     """
 
     def __init__(self, layout: StateLayout, action_dim: int, order: int = 3, truncation: str = "hyperbolic",
                  q: float = 0.75, max_interaction: int | None = 2, interactions: str = "controls",
-                 members: int = 3, margin: float = 0.1, ridge: float = 1e-6, chunk_size: int = 16384) -> None:
+                 members: int = 3, margin: float = 0.1, ridge: float = 1e-6, chunk_size: int = 16384,
+                 lags: int = 0) -> None:
+        check_lags(lags)
         if not (isinstance(members, int) and members >= 1):
             raise ValueError(f"members must be a positive integer, got {members!r}")
         if interactions not in INTERACTIONS:
@@ -98,13 +104,19 @@ class PCEDynamics(nn.Module):
             raise ValueError(f"ridge must be >= 0, got {ridge!r}")
         if not (isinstance(chunk_size, int) and chunk_size >= 1):
             raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
-        input_size = layout.feature_size + action_dim + 2
+        lag_memory = LagMemory(lags, layout.robot_size, action_dim)
+        if lags:
+            layout = replace(layout, memory_size=lag_memory.size)
+        # Inputs: the state's features, the actions, (l, rho), then the lagged changes and actions.
+        input_size = layout.feature_size + action_dim + 2 + lag_memory.size
         super().__init__()
         self.layout = layout
+        self.lag_memory = lag_memory
         indices = multi_indices(input_size, order, truncation, q, max_interaction)
         if interactions == "controls":
+            # The lagged inputs are state (what the robot did), not controls.
             controls = torch.zeros(input_size, dtype=torch.bool, device="cpu")
-            controls[layout.feature_size:] = True
+            controls[layout.feature_size:layout.feature_size + action_dim + 2] = True
             active = indices > 0
             indices = indices[(active.sum(1) <= 1) | (active & controls).any(1)]
         self.basis = Basis(indices)
@@ -112,12 +124,14 @@ class PCEDynamics(nn.Module):
         self.margin, self.ridge, self.chunk_size = margin, ridge, chunk_size
         self.register_buffer("low", -torch.ones(input_size))
         self.register_buffer("high", torch.ones(input_size))
-        self.register_buffer("change_low", -torch.full((layout.size,), math.inf))
-        self.register_buffer("change_high", torch.full((layout.size,), math.inf))
-        self.register_buffer("state_low", -torch.full((layout.size,), math.inf))  # velocities only; else -inf
-        self.register_buffer("state_high", torch.full((layout.size,), math.inf))
-        self.register_buffer("coefficients", torch.zeros(members, self.basis.terms, layout.size))
-        self.register_buffer("residual_std", torch.zeros(members, layout.size))
+        # The outputs are the robot's state: the memory is shifted, not predicted.
+        outputs = layout.robot_size
+        self.register_buffer("change_low", -torch.full((outputs,), math.inf))
+        self.register_buffer("change_high", torch.full((outputs,), math.inf))
+        self.register_buffer("state_low", -torch.full((outputs,), math.inf))  # velocities only; else -inf
+        self.register_buffer("state_high", torch.full((outputs,), math.inf))
+        self.register_buffer("coefficients", torch.zeros(members, self.basis.terms, outputs))
+        self.register_buffer("residual_std", torch.zeros(members, outputs))
         self.register_buffer("elites", torch.arange(members))
         self.register_buffer("fitted_terms", torch.zeros((), dtype=torch.long))  # how many terms the data fitted
         self._register_load_state_dict_pre_hook(drop_unused_standardizers)
@@ -135,14 +149,26 @@ class PCEDynamics(nn.Module):
     def voting_members(self) -> torch.Tensor:
         return torch.arange(self.members, device=self.device)
 
-    def memory_of(self, batch) -> None:
-        return None
+    def memory_of(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The lagged changes and actions before and after each step of a real batch (zeros before
+        an episode's start; :meth:`LagMemory.of_episodes`), or None without lags."""
+        if not self.lag_memory.lags:
+            return None
+        robot = self.layout.robot_size
+        state, next_state = (self.layout.from_full(batch.get(key))[..., :robot].float()
+                             for key in ("state", ("next", "state")))
+        return self.lag_memory.of_episodes(state, batch.get("action").float(), next_state, episode_starts(batch))
 
     def inputs(self, state, action, design):
-        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design.to(state.dtype)], dim=-1)
+        inputs = [self.layout.features(state), action.clamp(-1.0, 1.0), design.to(state.dtype)]
+        if self.lag_memory.lags:
+            inputs.append(state[..., self.layout.robot_size:])
+        return torch.cat(inputs, dim=-1)
 
     def targets(self, state, next_state):
-        return next_state - state
+        """The robot's change over the step (the memory is no output)."""
+        robot = self.layout.robot_size
+        return next_state[..., :robot] - state[..., :robot]
 
     @torch.no_grad()
     def set_ranges(self, inputs: torch.Tensor) -> None:
@@ -166,11 +192,18 @@ class PCEDynamics(nn.Module):
         x = self.design_matrix(self.inputs(state, action, design)).reshape(-1, self.terms)
         return (x @ self.coefficients.permute(1, 0, 2).flatten(1)).unflatten(-1, (self.members, -1))
 
-    def clamped(self, state: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
-        """``state + change`` within the data's range of changes and of velocities (see the class docstring)."""
+    def clamped(self, state: torch.Tensor, change: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``state + change`` within the data's range of changes and of velocities (see the class
+        docstring), with the memory shifted on by the step taken (its change after the clamps) and
+        ``action``."""
+        robot = self.layout.robot_size
         change = torch.maximum(torch.minimum(change, self.change_high), self.change_low)
-        next_state = state + change
-        return torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+        next_state = state[..., :robot] + change
+        next_state = torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
+        if not self.lag_memory.lags:
+            return next_state
+        memory = self.lag_memory.after_step(state[..., robot:], next_state - state[..., :robot], action)
+        return torch.cat([next_state, memory], dim=-1)
 
     @torch.no_grad()
     def predict(self, state, action, design, member, deterministic=False):
@@ -180,14 +213,14 @@ class PCEDynamics(nn.Module):
         change = every[torch.arange(every.shape[0], device=every.device), member]
         if not deterministic:
             change = change + torch.randn_like(change) * self.residual_std[member]
-        return self.clamped(state, change.reshape(state.shape))
+        return self.clamped(state, change.reshape(*state.shape[:-1], -1), action)
 
     @torch.no_grad()
     def predict_every_member(self, state: torch.Tensor, action: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
         """``[members, rows, size]``: every member's mean prediction of every row ``[rows, ...]``
         (what :func:`~unipolicy_rl.world_models.disagreement.member_predictions` asks for)."""
         every = self.every_member_change(state, action, design).transpose(0, 1)
-        return self.clamped(state.reshape(1, -1, state.shape[-1]), every)
+        return self.clamped(state.reshape(1, -1, state.shape[-1]), every, action.reshape(1, -1, action.shape[-1]))
 
     @torch.no_grad()
     def fit(self, transitions: TensorDictBase, train: torch.Tensor, validation: torch.Tensor, oversampling: float,
@@ -227,10 +260,11 @@ class PCEDynamics(nn.Module):
 
     # -- what the coefficients tell -------------------------------------------------------
     def input_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
-        """A name per input of the expansion: the state features, ``action<j>``, ``l``, ``rho``."""
+        """A name per input of the expansion: the state features, ``action<j>``, ``l``, ``rho``, then
+        the lagged changes and actions (:meth:`LagMemory.names`)."""
         features = self.layout.feature_names(body_names)
-        actions = self.basis.dimension - len(features) - 2
-        return [*features, *(f"action{j}" for j in range(actions)), "l", "rho"]
+        return [*features, *(f"action{j}" for j in range(self.lag_memory.action_dim)), "l", "rho",
+                *self.lag_memory.names(self.layout.state_names(body_names))]
 
     @torch.no_grad()
     def sobol_indices(self, member: int = 0) -> SobolIndices:

@@ -61,17 +61,19 @@ class SparsePCEDynamics(PCEDynamics):
         loo_samples: training rows that estimate the leave-one-out error (an unbiased subsample
             when there are more); their cost grows with this, the normal equations' does not.
         chunk_size: rows of the design matrix built at once while fitting (memory bound).
+        lags: previous steps whose state change and action are candidate inputs too (PC-NARX,
+            :mod:`~unipolicy_rl.world_models.pce.lags`); 0: none.
     """
 
     def __init__(self, layout: StateLayout, action_dim: int, order: int = 5, truncation: str = "hyperbolic",
                  q: float = 0.5, max_interaction: int | None = 2, interactions: str = "controls", members: int = 3,
                  margin: float = 0.1, max_terms: int | None = 200, patience: int = 10, tolerance: float = 0.0,
-                 loo_samples: int = 4096, chunk_size: int = 16384) -> None:
+                 loo_samples: int = 4096, chunk_size: int = 16384, lags: int = 0) -> None:
         check_sparsity(max_terms, patience, tolerance)
         if not (isinstance(loo_samples, int) and not isinstance(loo_samples, bool) and loo_samples >= 2):
             raise ValueError(f"loo_samples must be an integer >= 2, got {loo_samples!r}")
         super().__init__(layout, action_dim, order, truncation, q, max_interaction, interactions, members, margin,
-                         ridge=0.0, chunk_size=chunk_size)
+                         ridge=0.0, chunk_size=chunk_size, lags=lags)
         self.max_terms, self.patience, self.tolerance, self.loo_samples = max_terms, patience, tolerance, loo_samples
 
     @torch.no_grad()
