@@ -295,13 +295,13 @@ def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp
 
 
 def test_a_run_still_going_is_counted_apart_from_one_that_finished_without_the_level(runs):
-    """Hand-made runs have no final evaluation: they are still going. se-trpo seed 2 has not walked
-    yet: it may still, so it is 'running' at every level; finished, it never walked."""
+    """Hand-made runs have no final evaluation: they have not trained to their budget. se-trpo seed 2
+    has not walked yet: it may still, so it is counted unfinished at every level; finished, it never walked."""
     se = [runs["se-trpo", seed] for seed in range(3)]
     going = league.level_stats(se, "first_walk", resamples=100)
-    assert (going.reached, going.running) == (2, 1)
+    assert (going.reached, going.unfinished) == (2, 1)
     done = league.level_stats([dataclasses.replace(run, finished=True) for run in se], "first_walk", resamples=100)
-    assert (done.reached, done.running, done.steps) == (2, 0, going.steps)
+    assert (done.reached, done.unfinished, done.steps) == (2, 0, going.steps)
     table = league.format_league(league.make_entries(se, resamples=100))
-    assert "2/3 (1 running)" in table
-    assert "running" in league.format_runs(se).splitlines()[1]
+    assert "2/3 (1 unfinished)" in table
+    assert "unfinished" in league.format_runs(se).splitlines()[1]

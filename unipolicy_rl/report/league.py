@@ -155,7 +155,7 @@ class RunResult:
     levels: dict[str, Evaluation | None]
     milestones: dict[int, Evaluation | None]
     # Trained to its budget (its final evaluation exists). A run still going that has not reached a
-    # level yet may still reach it: the table counts it apart ("running"), not as never reaching it.
+    # level yet may still reach it: the table counts it apart ("unfinished"), not as never reaching it.
     finished: bool = True
 
 
@@ -209,7 +209,7 @@ class LevelStats:
     steps_interval: tuple[float, float]  # bootstrap 95% interval of that median
     seconds: float  # median wall seconds
     seconds_interval: tuple[float, float]
-    running: int = 0  # runs that have not reached the level but have not finished either
+    unfinished: int = 0  # runs that have not reached the level but have not trained to their budget either
 
 
 @dataclass
@@ -229,14 +229,14 @@ class Entry:
 def level_stats(runs: Sequence[RunResult], key: str, resamples: int = RESAMPLES,
                 seed: int = BOOTSTRAP_SEED) -> LevelStats:
     """One level over an entry's runs; a run that has not reached it counts as ``inf`` (so while a
-    run is still going, the median and interval are provisional: ``running`` counts those runs)."""
+    run is still going, the median and interval are provisional: ``unfinished`` counts those runs)."""
     found = [run.levels[key] for run in runs]
     steps = [e.steps if e is not None else math.inf for e in found]
     seconds = [e.seconds if e is not None else math.inf for e in found]
     return LevelStats(reached=sum(e is not None for e in found), runs=len(found),
                       steps=median(steps), steps_interval=bootstrap_interval(steps, resamples, seed),
                       seconds=median(seconds), seconds_interval=bootstrap_interval(seconds, resamples, seed),
-                      running=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)))
+                      unfinished=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)))
 
 
 def make_entries(results: Sequence[RunResult], resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> list[Entry]:
@@ -319,7 +319,8 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
         for entry in entries:
             stats = entry.levels[level.key]
             steps = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
-            reached = f"{stats.reached}/{stats.runs}" + (f" ({stats.running} running)" if stats.running else "")
+            unfinished = f" ({stats.unfinished} unfinished)" if stats.unfinished else ""
+            reached = f"{stats.reached}/{stats.runs}{unfinished}"
             lines.append(f"{entry.name:<{width}}  {reached:>18}  {steps:<44} "
                          f"{format_count(stats.seconds):>13}  {ratios[entry.name][0]:<17} {ratios[entry.name][1]}")
     lines += ["", "(d) the grid at the first evaluation at or after each milestone: median grid mean / median worst "
@@ -346,7 +347,7 @@ def format_runs(results: Sequence[RunResult]) -> str:
         reached = " ".join(f"{format_count(e.steps) if e else '-':>19}" for e in result.levels.values())
         last = f"{result.evaluations[-1].steps:,.0f}" if result.evaluations else "-"
         note = "" if result.step_schedule else "  (evaluated every evaluation.every epochs: an older run)"
-        status = "done" if result.finished else "running"
+        status = "done" if result.finished else "unfinished"
         lines.append(f"{result.name:<{width}}  {result.entry:<16} {reached} {len(result.evaluations):>11} "
                      f"{last:>9}  {status}{note}")
     return "\n".join(lines)
@@ -357,7 +358,7 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
-        writer.writerow(["entry", "model_free", "runs", "level", "reached", "running", "median_steps", "steps_low",
+        writer.writerow(["entry", "model_free", "runs", "level", "reached", "unfinished", "median_steps", "steps_low",
                          "steps_high", "median_seconds", "seconds_low", "seconds_high", f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
@@ -365,7 +366,7 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
             best = best_model_free(entries, level.key)
             for entry in entries:
                 stats = entry.levels[level.key]
-                writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.running,
+                writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.unfinished,
                                  stats.steps,
                                  *stats.steps_interval, stats.seconds, *stats.seconds_interval,
                                  fewer(reference.levels[level.key].steps, stats.steps) if reference else "",
