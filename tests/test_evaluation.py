@@ -173,7 +173,8 @@ def fake_checkpoint(tmp_path, monkeypatch):
     path = tmp_path / "run" / "checkpoint.pt"
     path.parent.mkdir()
     path.write_bytes(b"not read by the stand-in loader")
-    loaded = types.SimpleNamespace(policy=constant_policy(), env_kwargs=dict(ENV_KWARGS), config={})
+    loaded = types.SimpleNamespace(policy=constant_policy(), env_kwargs=dict(ENV_KWARGS), config={},
+                                   env_class=BatchedWalkerEnv)
     module = types.ModuleType("unipolicy_rl.checkpoint")
     module.load_policy = lambda checkpoint, device="cpu": loaded
     monkeypatch.setitem(sys.modules, "unipolicy_rl.checkpoint", module)
