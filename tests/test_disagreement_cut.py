@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from test_world_models import real_transitions
 from torchrl.envs.utils import check_env_specs
 
 from unipolicy_rl.collectors import HorizonSchedule, Imagination, ImaginationSettings, StoppingRule, imagined_metrics
@@ -145,7 +146,7 @@ def test_imagination_with_the_cut_logs_branch_length_and_the_share_cut(reference
 def test_without_the_cut_imagination_is_unchanged(reference):
     """Off: no new keys; and a cut that never fires leaves every value and random draw as off."""
     torch.manual_seed(0)
-    data = _real_transitions()
+    data = real_transitions()
     model = GaussianEnsemble(LAYOUT, 4, members=3, elites=2, hidden=(32,))
     ModelTrainer(max_epochs=2).fit(model, data, torch.Generator().manual_seed(0))
     policy = make_actor(18, 4)
@@ -164,16 +165,6 @@ def test_without_the_cut_imagination_is_unchanged(reference):
         assert torch.equal(off[key], never[key]), key
 
 
-def _real_transitions() -> TensorDict:
-    torch.manual_seed(0)
-    env = BatchedWalkerEnv(4, full_state=True)
-    env.set_seed(0)
-    rollout = env.rollout(30)
-    env.close()
-    return TensorDict({"state": rollout["state"], "action": rollout["action"], "design": rollout["design"],
-                       "next_state": rollout["next", "state"]}, rollout.shape).reshape(-1)
-
-
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_the_imagined_env_with_the_cut_passes_torchrls_checks(reference, deterministic):
     cut = DisagreementCut(GAP / 2, only_split_scale())
@@ -188,7 +179,7 @@ def test_deterministic_steps_with_the_cut_are_the_uncut_steps_and_their_disagree
     deterministic step (bit for bit for the PCE, whose every-member prediction is the same
     arithmetic), and its disagreement is MemberDisagreement's of that step."""
     torch.manual_seed(0)
-    data = _real_transitions()
+    data = real_transitions()
     model = (PCEDynamics(LAYOUT, 4, order=2, members=3) if kind == "pce"
              else GaussianEnsemble(LAYOUT, 4, members=3, elites=2, hidden=(32,)))
     trainer = ClosedFormTrainer() if kind == "pce" else ModelTrainer(max_epochs=2)
@@ -216,7 +207,7 @@ def test_deterministic_steps_with_the_cut_are_the_uncut_steps_and_their_disagree
 
 
 def test_the_pce_predicts_every_member_at_once_as_it_predicts_each():
-    data = _real_transitions()
+    data = real_transitions()
     model = PCEDynamics(LAYOUT, 4, order=2, members=3)
     n = data.batch_size[0]
     model.fit(data, torch.arange(n - 20), torch.arange(n - 20, n), oversampling=4.0,

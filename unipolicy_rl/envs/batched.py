@@ -24,6 +24,15 @@ from unipolicy_rl.envs.simulation import (
 )
 
 
+def numpy_tensordict(arrays: dict[str, np.ndarray], batch_size: torch.Size, device: torch.device) -> TensorDict:
+    """An env step's numpy arrays as a TensorDict, wrapped without a copy on the CPU (the arrays
+    must be fresh: the env's own buffers change in place on later steps)."""
+    tensors = {key: torch.from_numpy(value) for key, value in arrays.items()}
+    if device.type != "cpu":
+        tensors = {key: value.to(device) for key, value in tensors.items()}
+    return TensorDict(tensors, batch_size=batch_size, device=device)
+
+
 class BatchedWalkerEnv(EnvBase):
     """``num_robots`` independent walkers with batch_size ``[num_robots]``.
 
@@ -128,10 +137,7 @@ class BatchedWalkerEnv(EnvBase):
             out["state"] = self._raw.astype(np.float32)
         if reward is not None:
             out["reward"] = reward.astype(np.float32).reshape(n, 1)
-        tensors = {key: torch.from_numpy(value) for key, value in out.items()}
-        if self.device.type != "cpu":
-            tensors = {key: value.to(self.device) for key, value in tensors.items()}
-        return TensorDict(tensors, batch_size=self.batch_size, device=self.device)
+        return numpy_tensordict(out, self.batch_size, self.device)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         n = self.batch_size[0]

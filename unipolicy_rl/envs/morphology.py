@@ -19,6 +19,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from unipolicy_rl.envs.batched import numpy_tensordict
 from unipolicy_rl.envs.design import SE_LENGTH_RANGE, Design, DesignDistribution
 from unipolicy_rl.envs.link_tokens import BUILT, LINK_STATE_SIZE, MOVING, RobotTokens, moving_features, robot_tokens
 from unipolicy_rl.envs.morphology_simulation import MorphologySimulation
@@ -303,10 +304,7 @@ class MorphologyWalkerEnv(EnvBase):
         }
         if reward is not None:
             out["reward"] = reward.astype(np.float32).reshape(n, 1)
-        tensors = {key: torch.from_numpy(value) for key, value in out.items()}
-        if self.device.type != "cpu":
-            tensors = {key: value.to(self.device) for key, value in tensors.items()}
-        return TensorDict(tensors, batch_size=self.batch_size, device=self.device)
+        return numpy_tensordict(out, self.batch_size, self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         self._rng = np.random.default_rng(seed)
