@@ -298,6 +298,38 @@ def test_the_one_step_pce_fits_a_toy_dynamics_to_a_stated_held_out_error():
     assert int(small.fitted_terms) == 40 and (small.coefficients[:, 40:] == 0).all()
 
 
+def test_the_members_normal_equations_are_the_weighted_sums_over_whole_episode_groups():
+    from test_world_models import TOY, toy_transitions
+
+    from unipolicy_rl.world_models import PCEDynamics
+    from unipolicy_rl.world_models.pce import dynamics
+    from unipolicy_rl.world_models.trainer import EPISODE_START
+
+    model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                        interactions="all", members=3, chunk_size=700)
+    data = toy_transitions(3000, 0)
+    data.set(EPISODE_START, torch.arange(3000) % 10 == 0)  # 300 episodes of 10 steps
+    train = torch.randperm(3000, generator=torch.Generator().manual_seed(1))[:2400]
+    bootstrap = model.episode_bootstrap(data, train, torch.Generator().manual_seed(0))
+    # Whole episodes: every training row of an episode shares its group (and so its draws).
+    episode = train // 10
+    assert bootstrap.groups == dynamics.BOOTSTRAP_GROUPS
+    for e in episode.unique()[:50]:
+        assert bootstrap.group[episode == e].unique().numel() == 1
+    weights = bootstrap.weights()
+    assert (weights[0] == 1).all() and not (weights[1:] == 1).all()
+    assert torch.equal(bootstrap.samples(), (weights > 0).sum(1))
+    # The grouped, chunked sums equal the brute-force X^T W X, X^T W Y, sum w y^2 (float64).
+    inputs, targets, _ = model.regression_data(data)
+    model.set_data_ranges(inputs[train], targets[train], targets[train])
+    active = torch.arange(model.terms)
+    gram, moment, square = model.normal_equations(inputs[train], targets[train], bootstrap, active)
+    x, y, w = model.design_matrix(inputs[train]).double(), targets[train].double(), weights.double()
+    torch.testing.assert_close(gram, torch.einsum("mr,ri,rj->mij", w, x, x), rtol=1e-5, atol=1e-3)
+    torch.testing.assert_close(moment, torch.einsum("mr,ri,ro->mio", w, x, y), rtol=1e-5, atol=1e-3)
+    torch.testing.assert_close(square, w @ y.pow(2), rtol=1e-9, atol=0)
+
+
 def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_positions_move_on():
     from test_world_models import TOY, toy_transitions
 

@@ -189,7 +189,7 @@ def test_bootstrap_members_resample_whole_episodes_and_choose_their_own_terms_on
     model = SparsePCEDynamics(TOY, action_dim=2, order=4, q=0.75, members=4)
     data = episodes(toy_transitions(240, 2), 20)  # 12 episodes of 20 steps
     train = torch.arange(240)
-    weights = model.episode_bootstrap(data, train, torch.Generator().manual_seed(0))
+    weights = model.episode_bootstrap(data, train, torch.Generator().manual_seed(0)).weights()
     assert (weights[0] == 1).all()
     per_episode = weights.reshape(4, 12, 20)
     assert (per_episode == per_episode[..., :1]).all()  # one draw per episode, shared by its steps

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from tensordict import TensorDictBase
@@ -25,9 +25,51 @@ from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
 from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce.lags import LagMemory, check_lags, episode_starts
-from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
+from unipolicy_rl.world_models.trainer import EPISODE_START, TRANSITION_KEYS, FitReport
+
+#: Bootstrap groups of whole episodes at most: enough resolution for the members to differ as the
+#: data warrant, few enough that each group's products stay efficient matrix products.
+BOOTSTRAP_GROUPS = 256
 
 INTERACTIONS = ("all", "controls")
+
+
+@dataclass(frozen=True)
+class EpisodeBootstrap:
+    """The members' resamples of the training rows, by groups of whole episodes.
+
+    The steps of one episode are not independent samples: resampling them one by one would make
+    the members agree more than the data warrant, so a member draws whole episodes (Poisson(1)
+    times each, member 0 once each). Episodes are gathered, in buffer order, into at most
+    :data:`BOOTSTRAP_GROUPS` groups that share a draw, so the fit's cost does not grow with the
+    number of members (:meth:`PCEDynamics.normal_equations`).
+
+    Args:
+        group: ``[rows]`` the group of each training row, ``0 .. groups - 1``, every group used.
+        draws: ``[members, groups]`` how many times each member draws each group.
+    """
+
+    group: torch.Tensor
+    draws: torch.Tensor
+
+    @property
+    def groups(self) -> int:
+        return self.draws.shape[1]
+
+    def weights(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``[members, rows]`` the sample weights of the training rows (of ``rows`` of them)."""
+        return self.draws[:, self.group if rows is None else self.group[rows]]
+
+    def rows_per_group(self) -> torch.Tensor:
+        return torch.bincount(self.group, minlength=self.groups).to(self.draws.dtype)
+
+    def samples(self) -> torch.Tensor:
+        """``[members]`` rows each member sees at least once."""
+        return ((self.draws > 0).to(self.draws.dtype) @ self.rows_per_group()).long()
+
+    def total(self) -> torch.Tensor:
+        """``[members]`` each member's weight total."""
+        return self.draws @ self.rows_per_group()
 
 
 class PCEDynamics(nn.Module):
@@ -68,9 +110,9 @@ class PCEDynamics(nn.Module):
     locked joint's angle and rate) are left out too: on the data they are constant columns,
     copies of the intercept, and would make the normal equations singular.
 
-    Members are bootstrap fits (Poisson(1) sample weights, member 0 on the plain sample), so
-    imagined trajectories can draw one and ME-TRPO's stopping rule can compare them;
-    ``predict`` adds each member's residual noise (per output) unless ``deterministic``.
+    Members are bootstrap fits (Poisson(1) draws of whole episodes, member 0 on the plain sample:
+    :class:`EpisodeBootstrap`), so imagined trajectories can draw one and ME-TRPO's stopping
+    rule can compare them; ``predict`` adds each member's residual noise (per output) unless ``deterministic``.
 
     Args:
         layout: the state the model predicts.
@@ -236,13 +278,11 @@ class PCEDynamics(nn.Module):
             raise ValueError(f"need at least {oversampling} training transitions per PCE term, got {len(train)}")
         active = candidates.nonzero().squeeze(1)[:terms]  # by total degree: the constant, the linear terms, ...
         self.set_data_ranges(inputs[train], targets[train], next_state[train])
-        # Poisson(1) bootstrap weights; member 0 fits the plain sample.
-        weights = torch.poisson(torch.ones(self.members, len(train)), generator=generator).to(self.device)
-        weights[0] = 1.0
-        gram, moment, square = self.normal_equations(inputs[train], targets[train], weights, active)
-        samples = (weights > 0).sum(1)
+        bootstrap = self.episode_bootstrap(transitions, train, generator)
+        gram, moment, square = self.normal_equations(inputs[train], targets[train], bootstrap, active)
+        samples, total = bootstrap.samples(), bootstrap.total()
         # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
-        ridge = self.ridge * weights.sum(1).reshape(-1, 1, 1)
+        ridge = self.ridge * total.reshape(-1, 1, 1)
         gram = gram + ridge * torch.eye(terms, device=self.device)
         coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
         if diagnostics.fallbacks:
@@ -302,27 +342,68 @@ class PCEDynamics(nn.Module):
         self.state_low[velocities] = low - self.margin * (high - low)
         self.state_high[velocities] = high + self.margin * (high - low)
 
-    def normal_equations(self, inputs: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor,
+    def episode_bootstrap(self, transitions: TensorDictBase, train: torch.Tensor,
+                          generator: torch.Generator | None) -> EpisodeBootstrap:
+        """The members' resamples of the ``train`` rows: member 0 the plain sample, the others one
+        Poisson(1) draw per group of whole episodes (:class:`EpisodeBootstrap` says why)."""
+        if EPISODE_START in transitions.keys():
+            episode = transitions.get(EPISODE_START).reshape(-1).long().cumsum(0).to(self.device)
+        else:
+            episode = torch.arange(transitions.batch_size[0], device=self.device)
+        rank = torch.unique(episode[train], return_inverse=True)[1]
+        episodes = int(rank.max()) + 1
+        groups = min(episodes, BOOTSTRAP_GROUPS)
+        group = torch.div(rank * groups, episodes, rounding_mode="floor")
+        draws = torch.poisson(torch.ones(self.members, groups), generator=generator).to(self.device)
+        draws[0] = 1.0
+        rows = torch.bincount(group, minlength=groups).to(draws.dtype)
+        # A member that drew (almost) nothing (one or two episodes in the buffer) fits the plain sample.
+        draws[((draws > 0).to(draws.dtype) @ rows) < 2] = 1.0
+        return EpisodeBootstrap(group, draws)
+
+    def normal_equations(self, inputs: torch.Tensor, targets: torch.Tensor, bootstrap: EpisodeBootstrap,
                          active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Each member's ``X^T W X`` ``[members, terms, terms]``, ``X^T W Y`` and ``sum w y^2`` over the
-        ``active`` terms, accumulated over row chunks (the design matrix is never held whole).
+        ``active`` terms (float64), in one pass over the rows (the design matrix is never held whole).
 
-        Accumulated in float64: near the data's limit (2 samples per term, a bootstrap member
-        sees about 63% of them) float32 rounding in the sums outweighs the ridge and the Gram
-        matrix loses its positive definiteness."""
+        A member's weight is constant over a bootstrap group, so its sums are the groups' own
+        sums weighted by its draws: each group's ``X_g^T X_g`` is computed once, for every member
+        at the cost of one (a per-row bootstrap would need one product per member). The
+        products run in float32 over one group's rows (a few hundred at most once the buffer
+        is large) and are summed in float64 across groups: near the data's limit (2 samples
+        per term, a bootstrap member sees about 63% of them) float32 sums over the whole buffer
+        would lose the Gram matrix's positive definiteness."""
         terms, outputs = len(active), targets.shape[-1]
+        order = torch.argsort(bootstrap.group, stable=True)
+        inputs, targets = inputs[order], targets[order]
+        ends = torch.bincount(bootstrap.group, minlength=bootstrap.groups).cumsum(0).tolist()
         gram = torch.zeros(self.members, terms, terms, device=self.device, dtype=torch.float64)
         moment = torch.zeros(self.members, terms, outputs, device=self.device, dtype=torch.float64)
         square = torch.zeros(self.members, outputs, device=self.device, dtype=torch.float64)
-        for rows in torch.arange(len(inputs), device=self.device).split(self.chunk_size):
+        first = 0
+        while first < bootstrap.groups:  # a chunk: whole groups, about chunk_size rows
+            start = ends[first - 1] if first else 0
+            last = first
+            while last + 1 < bootstrap.groups and ends[last + 1] - start <= self.chunk_size:
+                last += 1
             # Terms first ([terms, rows]), as the basis builds it: selecting terms copies whole rows.
-            xt = self.design_matrix(inputs[rows]).transpose(-1, -2)[active].double()
-            y = targets[rows].double()
-            w = weights[:, rows].double()
-            weighted = xt * w.unsqueeze(1)  # [members, terms, rows]
-            gram += weighted @ xt.transpose(-1, -2)
-            moment += weighted @ y
-            square += w @ y.pow(2)
+            xt = self.design_matrix(inputs[start:ends[last]]).transpose(-1, -2)[active].float()
+            y = targets[start:ends[last]].float()
+            draws = bootstrap.draws[:, first:last + 1].float()  # [members, groups of the chunk]
+            chunk_gram = torch.zeros(self.members, terms * terms, device=self.device)
+            chunk_moment = torch.zeros(self.members, terms * outputs, device=self.device)
+            a = 0
+            for index, end in enumerate(ends[first:last + 1]):
+                b = end - start
+                x, part = xt[:, a:b], y[a:b]
+                weight = draws[:, index:index + 1]
+                chunk_gram.addmm_(weight, (x @ x.T).view(1, -1))  # every member's share of the group's sums
+                chunk_moment.addmm_(weight, (x @ part).view(1, -1))
+                square += weight.double() * part.double().pow(2).sum(0)
+                a = b
+            gram += chunk_gram.view(-1, terms, terms).double()
+            moment += chunk_moment.view(-1, terms, outputs).double()
+            first = last + 1
         return gram, moment, square
 
     def validation_error(self, inputs: torch.Tensor, targets: torch.Tensor,

@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from unipolicy_rl.polynomial_chaos.sparse import check_sparsity, select_terms
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce.dynamics import PCEDynamics
-from unipolicy_rl.world_models.trainer import EPISODE_START, FitReport
+from unipolicy_rl.world_models.trainer import FitReport
 
 
 class SparsePCEDynamics(PCEDynamics):
@@ -29,11 +29,9 @@ class SparsePCEDynamics(PCEDynamics):
     Inputs, ranges, clamps and prediction are :class:`PCEDynamics`'s (its docstring says why);
     the candidate basis is built the same way, only larger. The fit (:meth:`fit`):
 
-    1. every member's normal equations over all candidates, in one pass over the training rows
-       (float64, row chunks), with the member's sample weights: member 0 the plain sample, the
-       others Poisson(1) draws per *episode* (every step of an episode shares its draw: the steps
-       of one episode are not independent samples, and resampling them one by one would make
-       the members agree more than the data warrant);
+    1. every member's normal equations over all candidates, in one pass over the training rows,
+       with the member's resample of whole episodes (:class:`~unipolicy_rl.world_models.pce.dynamics.EpisodeBootstrap`:
+       member 0 the plain sample, the others Poisson(1) draws of groups of whole episodes);
     2. per member and output, orthogonal matching pursuit on those normal equations, stopped at
        the lowest corrected leave-one-out error (or the sparsest fit within ``tolerance`` of it),
        the error estimated on ``loo_samples`` random training rows (all of them when fewer);
@@ -86,13 +84,13 @@ class SparsePCEDynamics(PCEDynamics):
         inputs, targets, next_state = self.regression_data(transitions)
         candidates = self.candidates(inputs[train])
         self.set_data_ranges(inputs[train], targets[train], next_state[train])
-        weights = self.episode_bootstrap(transitions, train, generator)
+        bootstrap = self.episode_bootstrap(transitions, train, generator)
         every = torch.arange(self.terms, device=self.device)
-        gram, moment, square = self.normal_equations(inputs[train], targets[train], weights, every)
+        gram, moment, square = self.normal_equations(inputs[train], targets[train], bootstrap, every)
         picked = torch.randperm(len(train), generator=generator)[: self.loo_samples].to(self.device)
         rows = self.design_matrix(inputs[train[picked]])
-        fit = select_terms(gram, moment, square, weights.sum(1).double(), rows, targets[train[picked]],
-                           weights[:, picked], candidates, self.max_terms, self.patience, self.tolerance)
+        fit = select_terms(gram, moment, square, bootstrap.total().double(), rows, targets[train[picked]],
+                           bootstrap.weights(picked), candidates, self.max_terms, self.patience, self.tolerance)
         self.coefficients.copy_(fit.coefficients.float())
         self.fitted_terms.fill_(int(fit.selected.any(-1).any(0).sum()))
         self.residual_std.copy_(fit.residual_rms.float())
@@ -102,20 +100,3 @@ class SparsePCEDynamics(PCEDynamics):
         return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
                          extras={"mean_terms": float(fit.terms.float().mean()),
                                  "loo_error": float(fit.loo_error[0].mean())})
-
-    def episode_bootstrap(self, transitions: TensorDictBase, train: torch.Tensor,
-                          generator: torch.Generator | None) -> torch.Tensor:
-        """``[members, len(train)]`` sample weights: member 0 all ones, the others one Poisson(1)
-        draw per episode shared by its steps. Episodes are told apart by ``episode_start`` (the
-        buffer keeps an epoch's episodes whole and in order); without it every row is its own."""
-        if EPISODE_START in transitions.keys():
-            episode = transitions.get(EPISODE_START).reshape(-1).long().cumsum(0).to(self.device)
-        else:
-            episode = torch.arange(transitions.batch_size[0], device=self.device)
-        episode = torch.unique(episode[train], return_inverse=True)[1]
-        draws = torch.poisson(torch.ones(self.members, int(episode.max()) + 1), generator=generator).to(self.device)
-        weights = draws[:, episode]
-        weights[0] = 1.0
-        # A member that drew (almost) nothing (one or two episodes in the buffer) fits the plain sample.
-        weights[(weights > 0).sum(1) < 2] = 1.0
-        return weights
