@@ -23,6 +23,7 @@ from unipolicy_rl.objectives import TRPOLoss, TrustRegion, natural_gradient_step
 from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 from unipolicy_rl.policy import (
     NORMALIZED_TOKENS,
+    TOKEN_CRITICS,
     make_actor_critic,
     make_token_actor_critic,
     make_token_norm,
@@ -31,6 +32,7 @@ from unipolicy_rl.token_networks import (
     TokenTransformerSettings,
     make_padded_mlp_actor,
     make_padded_mlp_critic,
+    make_pooled_token_critic,
     make_token_transformer_actor,
     make_token_transformer_critic,
 )
@@ -121,6 +123,40 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
         torch.testing.assert_close(big_dist.entropy(), small_dist.entropy())
         torch.testing.assert_close(critic(bigger.clone())["state_value"], critic(data.clone())["state_value"],
                                    atol=1e-5, rtol=1e-5)
+
+
+def test_padding_leaves_the_pooled_critic_value_unchanged():
+    critic = make_pooled_token_critic(F, (16, 16))
+    with torch.no_grad():  # away from the initialisation, so the max and the mean both matter
+        for param in critic.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+    data = robots([SNAKE, QUADRUPED], length=7, batch=6)
+    bigger = padded(data, 12)
+    bigger[TOKENS][..., 9, :] = float("nan")  # not even a non-finite padding row reaches the value
+
+    with torch.no_grad():
+        value = critic(data.clone())["state_value"]
+        torch.testing.assert_close(critic(bigger.clone())["state_value"], value, atol=1e-5, rtol=1e-5)
+    assert value.std() > 1e-3  # the robots' values differ: the test is not comparing constants
+    # ... and its gradient stays finite, so a fit on padded data cannot poison the weights.
+    critic(bigger.clone())["state_value"].sum().backward()
+    assert all(torch.isfinite(param.grad).all() for param in critic.parameters())
+
+
+def test_the_pooled_critic_values_each_robot_by_its_real_tokens_in_any_order():
+    """No slot order is assumed: permuting a robot's real tokens (and its parents with them)
+    leaves its value unchanged; changing one real token changes it."""
+    critic = make_pooled_token_critic(F, (16, 16))
+    data = robots([QUADRUPED], length=9, batch=1)
+    order = torch.tensor([3, 0, 6, 1, 5, 2, 4, 7, 8])  # the 7 real tokens shuffled, padding after them
+    shuffled = data.clone()
+    shuffled[TOKENS], shuffled[TOKEN_MASK] = data[TOKENS][:, order], data[TOKEN_MASK][:, order]
+    moved = data.clone()
+    moved[TOKENS][:, 4] += 1.0
+    with torch.no_grad():
+        value = critic(data.clone())["state_value"]
+        torch.testing.assert_close(critic(shuffled)["state_value"], value, atol=1e-6, rtol=1e-6)
+        assert (critic(moved)["state_value"] - value).abs().item() > 1e-4
 
 
 def trpo_batch(loss: TRPOLoss, data: TensorDict) -> TensorDict:
@@ -329,6 +365,83 @@ def test_the_trpo_learner_refreshes_token_statistics_over_real_tokens_with_the_m
     assert abs(metrics["train/refresh_kl"]) < 1e-6  # preserve: the policy did not move
 
 
+# ------------------------------------------------------------------------------ critics
+@pytest.mark.parametrize("critic_kind", TOKEN_CRITICS)
+def test_the_critic_fit_lowers_the_value_loss_of_every_token_critic(critic_kind):
+    from unipolicy_rl.objectives import fit_critic, make_critic_optimizer
+
+    cfg = policy_config("token_transformer", f"policy.critic={critic_kind}", "policy.network.d_model=16",
+                        "policy.network.feedforward=32", "algo.critic_hidden=[32,32]")
+    actor, critic = make_token_actor_critic(cfg, F, 8)
+    loss = TRPOLoss(actor, critic)
+    data = make_token_norm(F)(robots([SNAKE, QUADRUPED], length=8, batch=256))
+    # A value the tokens determine: the mean of a real-token feature, offset by the robot's size.
+    real = data[TOKEN_MASK].unsqueeze(-1).float()
+    data["value_target"] = ((data[TOKENS][..., :1] * real).sum(-2) / real.sum(-2) + real.sum(-2) / 4).detach()
+
+    def value_loss() -> float:
+        with torch.no_grad():
+            return loss.critic_loss(data.clone()).item()
+
+    before = value_loss()
+    result = fit_critic(loss, data, make_critic_optimizer(loss, 1e-3), epochs=10, minibatch_size=64,
+                        generator=torch.Generator().manual_seed(0))
+
+    assert result.fitted, result.skip_reason
+    assert value_loss() < 0.5 * before
+
+
+def test_the_default_token_transformer_critic_and_each_choice_build_as_named():
+    from unipolicy_rl.token_networks import PooledTokenCritic, _TransformerCriticNetwork
+
+    data = robots([SNAKE, QUADRUPED], length=7, batch=4)
+    kinds = {"transformer": _TransformerCriticNetwork, "pooled": PooledTokenCritic,
+             "padded_mlp": make_padded_mlp_critic(F, 7).module.__class__}
+    for kind, network in kinds.items():
+        _, critic = make_token_actor_critic(policy_config("token_transformer", f"policy.critic={kind}"), F, 7)
+        assert isinstance(critic.module, network), kind
+        with torch.no_grad():
+            assert critic(make_token_norm(F)(data.clone()))["state_value"].shape == (4, 1)
+    _, default = make_token_actor_critic(policy_config("token_transformer"), F, 7)
+    assert isinstance(default.module, PooledTokenCritic)  # measured as good and cheaper (docs/grammar.md)
+    small = ("policy.critic=transformer", "policy.critic_network={_target_:unipolicy_rl.token_networks."
+             "TokenTransformerSettings,d_model:16,heads:2,layers:1,feedforward:32}")
+    _, critic = make_token_actor_critic(policy_config("token_transformer", *small), F, 7)
+    assert critic.module.encoder.settings == TokenTransformerSettings(d_model=16, heads=2, layers=1, feedforward=32)
+    _, critic = make_token_actor_critic(policy_config("token_mlp", "policy.critic=pooled"), F, 7)
+    assert isinstance(critic.module, PooledTokenCritic)
+
+
+@pytest.mark.parametrize(("policy", "overrides", "message"), [
+    ("token_transformer", ["policy.critic=attention"],
+     r"policy.critic must be one of \('transformer', 'pooled', 'padded_mlp'\), got 'attention'"),
+    ("token_mlp", ["policy.critic=transformer"],
+     "policy.critic=transformer takes its sizes from policy.critic_network or policy.network, and "
+     "policy=token_mlp has neither"),
+])
+def test_a_bad_critic_is_refused_by_name_by_the_factory(policy, overrides, message):
+    """The same check as validation's at start-up (tests/test_validation.py), for a caller that skips it."""
+    with pytest.raises(ValueError, match=message):
+        make_token_actor_critic(policy_config(policy, *overrides), F, 7)
+
+
+def test_a_token_policy_saved_before_the_critic_setting_resumes_with_the_critic_it_had():
+    from omegaconf import OmegaConf
+
+    from unipolicy_rl.checkpoint import settings_for_resume
+
+    for policy, critic in (("token_transformer", "transformer"), ("token_mlp", "padded_mlp")):
+        today = policy_config(policy, "robot=grammar", "policy.critic=pooled")
+        saved = OmegaConf.to_container(today, resolve=False)
+        del saved["policy"]["critic"]  # the config as a run saved it before policy.critic existed
+        saved["policy"].pop("critic_network", None)
+        resumed = settings_for_resume(today, {"config": saved}, overridden=[], path="old.pt")
+        assert resumed.policy.critic == critic
+        _, built = make_token_actor_critic(resumed, F, 7)
+        _, expected = make_token_actor_critic(policy_config(policy, f"policy.critic={critic}"), F, 7)
+        assert type(built.module) is type(expected.module)
+
+
 # -------------------------------------------------------------------------- statistics
 def test_token_statistics_and_normaliser_ignore_padding():
     data = robots([SNAKE, QUADRUPED], length=7, batch=10)
@@ -356,9 +469,11 @@ def test_token_statistics_and_normaliser_ignore_padding():
         statistics.update(data[TOKENS], data[TOKEN_MASK].float())
 
 
-@pytest.mark.parametrize("architecture", ["token_transformer", "token_mlp"])
-def test_a_preserving_refresh_leaves_token_networks_unchanged(architecture):
-    cfg = policy_config(architecture)
+@pytest.mark.parametrize(("architecture", "critic"), [
+    ("token_transformer", "transformer"), ("token_transformer", "pooled"), ("token_mlp", "padded_mlp"),
+])
+def test_a_preserving_refresh_leaves_token_networks_unchanged(architecture, critic):
+    cfg = policy_config(architecture, f"policy.critic={critic}")
     actor, critic = make_token_actor_critic(cfg, F, 7)
     normalizer = make_token_norm(F)
     with torch.no_grad():

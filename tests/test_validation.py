@@ -158,6 +158,11 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "robot.training_morphologies=4"],
          r"robot.training_morphologies must be null or an integer in \[1, 3\]"),
         (["+robot.kind=snake"], "robot.kind must be one of"),
+        ([*GRAMMAR, "policy=token_transformer", "policy.critic=attention"],
+         r"policy.critic must be one of \('transformer', 'pooled', 'padded_mlp'\), got 'attention'"),
+        ([*GRAMMAR, "policy=token_mlp", "policy.critic=transformer"],
+         "policy.critic=transformer takes its sizes from policy.critic_network or policy.network, and "
+         "policy=token_mlp has neither"),
     ],
 )
 def test_a_robot_and_policy_that_cannot_train_together_are_refused_by_name(overrides, message):

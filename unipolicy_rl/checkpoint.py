@@ -37,6 +37,7 @@ from unipolicy_rl.policy import (
     make_policy_actor,
     make_token_actor_critic,
     make_token_norm,
+    pin_token_critic,
     policy_architecture,
 )
 
@@ -209,6 +210,7 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
     something else is refused, naming the keys, rather than failing in ``load_state_dict``.
     """
     saved = OmegaConf.create(state["config"])
+    pin_token_critic(saved)  # a token policy saved before policy.critic existed keeps its critic
     kind, saved_kind = OmegaConf.select(cfg, "source.kind"), OmegaConf.select(saved, "source.kind")
     if saved_kind is not None and kind != saved_kind:
         raise ValueError(f"cannot resume {str(path)!r}: it trained on source.kind={saved_kind!r} data "

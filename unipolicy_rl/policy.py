@@ -4,7 +4,8 @@
 through ``algo``'s MLPs (the default, and every run before the group existed); or, for robots of
 any morphology observed as padded link tokens (:mod:`unipolicy_rl.envs.tokens`),
 ``token_transformer`` or its baseline ``token_mlp`` (:mod:`unipolicy_rl.token_networks`), built
-by :func:`make_token_actor_critic` behind a :func:`make_token_norm`.
+by :func:`make_token_actor_critic` behind a :func:`make_token_norm`; ``policy.critic`` chooses
+the token policy's critic (:data:`TOKEN_CRITICS`).
 
 Kept apart from the training stack (collectors, world models, learners), so loading a policy to
 run or evaluate it imports none of them.
@@ -17,11 +18,13 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs.transforms import ObservationNorm
+from torchrl.modules import ValueOperator
 
 from unipolicy_rl.networks import make_actor, make_critic, make_tanh_actor
 from unipolicy_rl.token_networks import (
     make_padded_mlp_actor,
     make_padded_mlp_critic,
+    make_pooled_token_critic,
     make_token_transformer_actor,
     make_token_transformer_critic,
 )
@@ -33,6 +36,14 @@ NORMALIZED_TOKENS = "tokens_norm"
 # read link tokens and drive the padded, masked action of unipolicy_rl.envs.tokens.
 FLAT_POLICIES = ("mlp",)
 TOKEN_POLICIES = ("token_transformer", "token_mlp")
+# ``policy.critic`` of a token policy: the state value GAE and the critic fit use. ``transformer``:
+# its own token transformer, of ``policy.critic_network``'s sizes (unset: ``policy.network``'s);
+# ``pooled``: the pooled token MLP (Deep Sets) of ``algo.critic_hidden``; ``padded_mlp``: the
+# padded tokens flattened through ``algo.critic_hidden`` (its weights tied to the padding).
+TOKEN_CRITICS = ("transformer", "pooled", "padded_mlp")
+# The critic each token policy had before ``policy.critic`` existed: a config (a checkpoint's)
+# without the key builds it, so such a run resumes into the critic its weights belong to.
+CRITIC_BEFORE_THE_SETTING = {"token_transformer": "transformer", "token_mlp": "padded_mlp"}
 
 
 def policy_architecture(cfg: DictConfig) -> str:
@@ -41,6 +52,38 @@ def policy_architecture(cfg: DictConfig) -> str:
     if name not in FLAT_POLICIES + TOKEN_POLICIES:
         raise ValueError(f"policy.name must be one of {FLAT_POLICIES + TOKEN_POLICIES}, got {name!r}")
     return name
+
+
+def token_critic(cfg: DictConfig) -> str:
+    """``cfg.policy.critic`` of a token policy (:data:`TOKEN_CRITICS`), or the critic the policy had
+    before the setting existed (:data:`CRITIC_BEFORE_THE_SETTING`); unknown names refused."""
+    architecture = policy_architecture(cfg)
+    if architecture not in TOKEN_POLICIES:
+        raise ValueError(f"policy.critic is a token policy's setting ({TOKEN_POLICIES}), not policy={architecture}'s")
+    name = OmegaConf.select(cfg, "policy.critic", default=None)
+    name = CRITIC_BEFORE_THE_SETTING[architecture] if name is None else name
+    if name not in TOKEN_CRITICS:
+        raise ValueError(f"policy.critic must be one of {TOKEN_CRITICS}, got {name!r}")
+    if name == "transformer" and _critic_transformer_settings(cfg) is None:
+        raise ValueError(f"policy.critic=transformer takes its sizes from policy.critic_network or policy.network, "
+                         f"and policy={architecture} has neither: use policy.critic=pooled or padded_mlp")
+    return name
+
+
+def pin_token_critic(cfg: DictConfig) -> None:
+    """Writes the critic a token policy's ``cfg`` builds into ``policy.critic`` (in place).
+
+    For a checkpoint's config from before the setting existed: merged into a newer config (as a
+    resume does), the missing key would otherwise take the newer default, a critic the saved
+    weights do not belong to."""
+    if policy_architecture(cfg) in TOKEN_POLICIES and OmegaConf.select(cfg, "policy.critic", default=None) is None:
+        OmegaConf.update(cfg, "policy.critic", token_critic(cfg), force_add=True)
+
+
+def _critic_transformer_settings(cfg: DictConfig) -> DictConfig | None:
+    """The transformer critic's sizes: ``policy.critic_network``, else the actor's ``policy.network``."""
+    settings = OmegaConf.select(cfg, "policy.critic_network", default=None)
+    return OmegaConf.select(cfg, "policy.network", default=None) if settings is None else settings
 
 
 def make_observation_norm(observation_dim: int, loc: torch.Tensor | None = None,
@@ -90,12 +133,13 @@ def make_token_norm(token_features: int, loc: torch.Tensor | None = None,
 
 
 def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: int):
-    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer`` or ``token_mlp``), reading
-    the normalised tokens, the token mask and parents, and (the actor) the action mask.
+    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer`` or ``token_mlp``, and
+    ``policy.critic``), reading the normalised tokens, the token mask and parents, and (the
+    actor) the action mask.
 
     ``token_features`` (``F``) and ``max_tokens`` (``L``, the padding) come from the env's specs.
     The transformer's sizes are ``cfg.policy.network``; the padded MLP takes ``algo``'s hidden
-    sizes and activation; both start at ``algo.init_log_std``.
+    sizes and activation; both start at ``algo.init_log_std``. The critic: :func:`make_token_critic`.
     """
     architecture = policy_architecture(cfg)
     if architecture not in TOKEN_POLICIES:
@@ -103,13 +147,26 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
     algo = cfg.algo
     if algo.get("name", "trpo") != "trpo":
         raise ValueError(f"the token policies are Gaussian policies for TRPO, not for algo={algo.name}")
+    token_critic(cfg)  # a bad critic name fails before any network is built
     if architecture == "token_transformer":
-        settings = instantiate(cfg.policy.network)
-        actor = make_token_transformer_actor(token_features, settings, algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
-        critic = make_token_transformer_critic(token_features, settings, tokens_key=NORMALIZED_TOKENS)
-        return actor, critic
-    actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
-                                  algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
-    critic = make_padded_mlp_critic(token_features, max_tokens, tuple(algo.critic_hidden), algo.activation,
-                                    tokens_key=NORMALIZED_TOKENS)
-    return actor, critic
+        actor = make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,
+                                             tokens_key=NORMALIZED_TOKENS)
+    else:
+        actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
+                                      algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
+    return actor, make_token_critic(cfg, token_features, max_tokens)
+
+
+def make_token_critic(cfg: DictConfig, token_features: int, max_tokens: int) -> ValueOperator:
+    """The state value ``policy.critic`` names (:data:`TOKEN_CRITICS`), reading the normalised
+    tokens and the token mask (the transformer's also the parents); its own weights, apart from
+    the actor's, so the critic's Adam never moves the policy TRPO just bounded."""
+    kind, algo = token_critic(cfg), cfg.algo
+    if kind == "transformer":
+        return make_token_transformer_critic(token_features, instantiate(_critic_transformer_settings(cfg)),
+                                             tokens_key=NORMALIZED_TOKENS)
+    if kind == "pooled":
+        return make_pooled_token_critic(token_features, tuple(algo.critic_hidden), algo.activation,
+                                        tokens_key=NORMALIZED_TOKENS)
+    return make_padded_mlp_critic(token_features, max_tokens, tuple(algo.critic_hidden), algo.activation,
+                                  tokens_key=NORMALIZED_TOKENS)

@@ -16,6 +16,12 @@ distribution and critic output):
 * the padded MLP (the baseline): the normalised tokens flattened in slot order (padding zero)
   with the token mask beside them, through an MLP to ``[L]`` means; its weights are tied to ``L``.
 
+Three critics (state value, ``[*, 1]``), any of them beside either actor: the transformer's own
+encoder, mean-pooled over the real tokens; the padded MLP; and the pooled token MLP (Deep Sets:
+one MLP applied to every token, the masked mean and max over real tokens, an MLP head), whose
+cost is a per-token MLP instead of attention layers and whose weights, like the transformer's,
+do not depend on ``L``.
+
 The std is one shared, state-independent parameter (``exp(log_std)`` on every slot). A vector
 per slot has no fixed meaning when slot 3 is a leg joint on one robot and a body joint on the
 next, and its size would tie the policy to ``L``; a std per joint kind would need the kind as a
@@ -25,6 +31,7 @@ parameter vector, and so the TRPO step, independent of the padding.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -38,7 +45,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
 from unipolicy_rl.masked_normal import MaskedIndependentNormal
-from unipolicy_rl.networks import _orthogonal_linear, make_mlp
+from unipolicy_rl.networks import ACTIVATIONS, _orthogonal_linear, make_mlp
 from unipolicy_rl.observation_statistics import reexpress_linear
 
 __all__ = [
@@ -50,6 +57,7 @@ __all__ = [
     "attention_blocked",
     "make_padded_mlp_actor",
     "make_padded_mlp_critic",
+    "make_pooled_token_critic",
     "make_token_transformer_actor",
     "make_token_transformer_critic",
 ]
@@ -167,6 +175,20 @@ class _TransformerActorNetwork(nn.Module):
         return self.std(self.action_head(self.encoder(tokens, token_mask, token_parent)).squeeze(-1))
 
 
+def _masked_mean(values: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
+    """``[*, L, D] -> [*, D]``: the mean over the real tokens (0 for a robot with none)."""
+    real = token_mask.unsqueeze(-1).to(values.dtype)
+    return (values * real).sum(-2) / real.sum(-2).clamp_min(1.0)
+
+
+def _masked_max(values: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
+    """``[*, L, D] -> [*, D]``: the largest value over the real tokens (0 for a robot with none)."""
+    real = token_mask.unsqueeze(-1)
+    lowest = torch.full((), float("-inf"), dtype=values.dtype, device=values.device)
+    largest = torch.where(real, values, lowest).amax(-2)
+    return torch.where(real.any(-2), largest, torch.zeros((), dtype=values.dtype, device=values.device))
+
+
 class _TransformerCriticNetwork(nn.Module):
     """Tokens -> state value: the mean of the encoded real tokens, then a linear head."""
 
@@ -176,10 +198,45 @@ class _TransformerCriticNetwork(nn.Module):
         self.value_head = _orthogonal_linear(settings.d_model, 1, gain=1.0)
 
     def forward(self, tokens, token_mask, token_parent):
-        encoded = self.encoder(tokens, token_mask, token_parent)
-        real = token_mask.unsqueeze(-1).to(encoded.dtype)
-        pooled = (encoded * real).sum(-2) / real.sum(-2).clamp_min(1.0)
-        return self.value_head(pooled)
+        return self.value_head(_masked_mean(self.encoder(tokens, token_mask, token_parent), token_mask))
+
+
+class PooledTokenCritic(nn.Module):
+    """``(tokens [*, L, F], mask [*, L]) -> [*, 1]``, Deep Sets: one MLP on every token (its
+    hidden layers ``hidden_sizes``, each followed by the activation), the masked mean and max of
+    its outputs over the real tokens, then an MLP head (the same hidden sizes) to the value.
+
+    The cheap critic for token policies: where the transformer's critic runs attention layers
+    per token and pair of tokens, this runs one small MLP per token, and the tokens meet only in
+    the pooling. Padding never reaches the value (its rows are zeroed before the MLP, so even a
+    non-finite padding row has no gradient to leak, and both poolings skip it), and the weights
+    do not depend on ``L``, so the same critic values any robot. The max keeps what a mean over
+    a large robot would dilute (the one link that is falling, the fastest foot).
+    """
+
+    def __init__(self, token_features: int, hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh") -> None:
+        super().__init__()
+        if not (isinstance(token_features, int) and token_features >= 1):
+            raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
+        hidden_sizes = tuple(hidden_sizes)
+        if not hidden_sizes:
+            raise ValueError("the pooled critic needs at least one hidden size (the width of each token's "
+                             "features before pooling), got hidden_sizes=()")
+        # make_mlp checks the activation's name; its last layer here is a hidden one (gain sqrt 2).
+        per_token = make_mlp(token_features, hidden_sizes[-1], hidden_sizes[:-1], activation,
+                             output_gain=math.sqrt(2.0))
+        self.token_mlp = nn.Sequential(*per_token, ACTIVATIONS[activation]())
+        self.head = make_mlp(2 * hidden_sizes[-1], 1, hidden_sizes, activation, output_gain=1.0)
+
+    def forward(self, tokens: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
+        real = token_mask.unsqueeze(-1)
+        per_token = self.token_mlp(torch.where(real, tokens, torch.zeros((), dtype=tokens.dtype)))
+        return self.head(torch.cat([_masked_mean(per_token, token_mask), _masked_max(per_token, token_mask)], -1))
+
+    def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
+        """Re-express the per-token MLP's first layer for a moved normaliser: each real token's
+        output, and so the value, stays the same (padding is zeroed and pooled out either way)."""
+        reexpress_linear(self.token_mlp[0], old_loc, old_scale, new_loc, new_scale)
 
 
 class PaddedTokenMLP(nn.Module):
@@ -277,3 +334,10 @@ def make_padded_mlp_critic(token_features: int, max_tokens: int, hidden_sizes: S
     """The padded-MLP baseline's state value."""
     network = PaddedTokenMLP(token_features, max_tokens, 1, tuple(hidden_sizes), activation, output_gain=1.0)
     return ValueOperator(network, in_keys=[tokens_key, TOKEN_MASK])
+
+
+def make_pooled_token_critic(token_features: int, hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh",
+                             *, tokens_key: str = TOKENS) -> ValueOperator:
+    """The pooled token MLP's state value (:class:`PooledTokenCritic`): the cheap critic beside a
+    token policy, for any robot and any padding."""
+    return ValueOperator(PooledTokenCritic(token_features, hidden_sizes, activation), in_keys=[tokens_key, TOKEN_MASK])

@@ -29,7 +29,7 @@ from unipolicy_rl.envs.morphology import SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
-from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES
+from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES, token_critic
 
 
 def _integer(minimum: int) -> Callable[[object], str | None]:
@@ -172,6 +172,17 @@ def _policy_reads_the_robot(cfg: DictConfig) -> str | None:
     return None
 
 
+def _token_critic_builds(cfg: DictConfig) -> str | None:
+    """A token policy's ``policy.critic`` is a known critic, and a transformer critic has sizes."""
+    if cfg.policy.name not in TOKEN_POLICIES:
+        return None
+    try:
+        token_critic(cfg)
+    except ValueError as error:
+        return str(error)
+    return None
+
+
 def _grammar_learns_model_free_with_trpo(cfg: DictConfig) -> str | None:
     if robot_kind(cfg) != "grammar":
         return None
@@ -199,6 +210,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("source.kind", "world_model", "imagination"): _model_source_groups,
     ("robot",): _known_robot,
     ("robot", "policy.name"): _policy_reads_the_robot,
+    ("policy",): _token_critic_builds,
     ("robot", "source.kind", "algo.name"): _grammar_learns_model_free_with_trpo,
 }
 

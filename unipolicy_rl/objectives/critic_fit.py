@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -20,7 +21,7 @@ from torch import nn
 
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
-__all__ = ["CriticFitResult", "fit_critic", "make_critic_optimizer"]
+__all__ = ["CriticFitResult", "explained_variance", "fit_critic", "make_critic_optimizer"]
 
 # Private: ``torch.optim.adam.adam``, Adam's functional kernel (not re-exported by torch.optim).
 # Its positional parameters have grown and moved between torch releases, so the fast path calls
@@ -138,6 +139,24 @@ def fit_critic(
             restore()
             return CriticFitResult(False, "non-finite critic loss or gradient")
     return CriticFitResult(True, None, float(total / max(steps, 1)))
+
+
+def explained_variance(prediction: torch.Tensor, target: torch.Tensor) -> float:
+    """``1 - Var(target - prediction) / Var(target)``: the share of the target's variance a critic's
+    prediction explains (1: exact; 0: no better than the target's mean). The TRPO update logs it
+    for the critic before its fit (``train/explained_variance``).
+
+    0.0 where it is undefined (fewer than two samples, a constant target, or a non-finite
+    value, which the critic fit reports by skipping), so the metrics stay finite for loggers
+    and NaN checks.
+    """
+    target = target.reshape(-1)
+    variance = target.var(correction=0)
+    if target.numel() < 2 or variance == 0:
+        return 0.0
+    residual = target - prediction.reshape(-1)
+    explained = float(1.0 - residual.var(correction=0) / variance)
+    return explained if math.isfinite(explained) else 0.0
 
 
 def _all_finite(tensors: Iterable[torch.Tensor]) -> bool:

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 from tensordict import TensorDictBase
 
-from unipolicy_rl.objectives.critic_fit import CriticFitResult, fit_critic, make_critic_optimizer
+from unipolicy_rl.objectives.critic_fit import CriticFitResult, explained_variance, fit_critic, make_critic_optimizer
 from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
@@ -74,7 +72,7 @@ class TRPOUpdater:
         step = natural_gradient_step(loss, flat, advantage=advantage, trust_region=self.trust_region)
         self.last_step = step
         metrics = step.as_metrics("train/")
-        metrics["train/explained_variance"] = _explained_variance(
+        metrics["train/explained_variance"] = explained_variance(
             flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
         )
         critic_fit = fit_critic(
@@ -90,19 +88,3 @@ class TRPOUpdater:
         self.consecutive_skips = 0 if step.accepted and critic_fit.fitted else self.consecutive_skips + 1
         metrics["train/consecutive_skips"] = float(self.consecutive_skips)
         return metrics
-
-
-def _explained_variance(prediction: torch.Tensor, target: torch.Tensor) -> float:
-    """``1 - Var(target - prediction) / Var(target)`` of the critic before its fit.
-
-    0.0 where it is undefined (fewer than two samples, a constant target, or a non-finite
-    value, which the critic fit reports by skipping), so the metrics stay finite for loggers
-    and NaN checks.
-    """
-    target = target.reshape(-1)
-    variance = target.var(correction=0)
-    if target.numel() < 2 or variance == 0:
-        return 0.0
-    residual = target - prediction.reshape(-1)
-    explained = float(1.0 - residual.var(correction=0) / variance)
-    return explained if math.isfinite(explained) else 0.0
