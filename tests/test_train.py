@@ -148,12 +148,25 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     assert (step["action"][~step["action_mask"]] == 0).all()
     with pytest.raises(ValueError, match="link tokens"):
         loaded.act(np.zeros(18))
+
     # python -m unipolicy_rl.evaluate takes it too, on any side of the split.
     from unipolicy_rl.evaluate import main as evaluate
 
     summary = evaluate([str(tmp_path / "a" / "checkpoint.pt"), "--grid", "1", "--morphologies", "held_out",
                         "--out", str(tmp_path / "held_out")])
     assert summary["morphologies"] == 2 and summary["designs"] == 2
+
+
+def test_a_grammar_run_collects_on_ray_actors(tmp_path):
+    """collector.backend=ray with robots of several morphologies: the actors step the padded
+    token env, and the run trains an epoch on what they send and checkpoints it."""
+    pytest.importorskip("ray")
+    run = run_train(*GRAMMAR_TINY, "collector.backend=ray", "workers=2", "epochs=1", f"hydra.run.dir={tmp_path}")
+    assert run.returncode == 0, run.stderr
+    with (tmp_path / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 1 and float(rows[0]["real_env_steps"]) == 20  # 2 episodes of 10 steps
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["epoch"] == 1
 
 
 def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
