@@ -73,5 +73,6 @@ class TokenLayout:
         return state.unflatten(-1, self.observation_shape)
 
     def observation(self, state: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
-        """What the policy reads of ``state``: its tokens (the design is not told, as in the real env)."""
-        return self.tokens(state)
+        """What the policy reads of ``state``: its tokens (the design is not told, as in the real env);
+        a copy, so the policy's tokens and the model's state never alias within a step."""
+        return self.tokens(state).clone()
