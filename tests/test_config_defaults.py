@@ -42,6 +42,7 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.world_models.GaussianEnsemble": ("world_model/moe.yaml", "model"),
     "unipolicy_rl.world_models.ModelTrainer": ("world_model/moe.yaml", "trainer"),
     "unipolicy_rl.world_models.CellEnsemble": ("world_model/moe_thesis.yaml", "model"),
+    "unipolicy_rl.world_models.TokenEnsemble": ("world_model/robot/grammar.yaml", "model"),
     "unipolicy_rl.world_models.PCEDynamics": ("world_model/pce.yaml", "model"),
     "unipolicy_rl.world_models.ClosedFormTrainer": ("world_model/pce.yaml", "trainer"),
     "unipolicy_rl.world_models.ThesisPCEDynamics": ("world_model/pce_thesis.yaml", "model"),

@@ -318,6 +318,42 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 
 
+# source=moe on robot=grammar: the ensemble conditioned on the morphology, tiny, beside the padded MLP.
+GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "robot.split.train_size=3",
+                    "robot.split.held_out_size=2", "evaluation.every_steps=0", "imagination.steps_per_batch=40",
+                    "imagination.horizon.start=4", "imagination.horizon.end=4", "world_model.model.embedding=8",
+                    "world_model.model.hidden=[16]", "world_model.model.members=3", "world_model.model.elites=2",
+                    "world_model.trainer.max_steps=6", "world_model.trainer.check_every=3",
+                    "imagination.stopping.max_updates=2", "imagination.stopping.check_every=1",
+                    "imagination.stopping.check_starts=4", "imagination.stopping.check_horizon=3"]
+
+
+def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly(tmp_path):
+    straight = run_train(*GRAMMAR_MOE_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'a'}")
+    assert straight.returncode == 0, straight.stderr
+    first = run_train(*GRAMMAR_MOE_TINY, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
+    assert first.returncode == 0, first.stderr
+    resumed = run_train(*GRAMMAR_MOE_TINY, "epochs=2", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    assert resumed.returncode == 0, resumed.stderr
+    a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    assert a["epoch"] == b["epoch"] == 2
+    assert a["config"]["world_model"]["model"]["_target_"] == "unipolicy_rl.world_models.TokenEnsemble"
+    for name in ("actor", "critic"):
+        for key, value in a["learner"][name].items():
+            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    for key, value in a["world_model"].items():
+        assert torch.equal(value, b["world_model"][key]), f"world model {key} differs after resume"
+    with (tmp_path / "a" / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    real = [row for row in rows if row["imagined"] == "0.0"]
+    imagined = [row for row in rows if row["imagined"] == "1.0"]
+    assert len(real) == 2 and imagined and all(row["imagined/reward_per_step"] for row in imagined)
+    assert real[0]["model/validation_mse"] and float(real[1]["model/fresh_error"]) > 0
+    assert (tmp_path / "a" / "logs" / "se-moe-trpo_seed0").is_dir()
+    assert "morphologies 3: walking" in straight.stdout
+
+
 @pytest.mark.parametrize(
     ("override", "match"),
     [

@@ -148,7 +148,15 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         (["robot=grammar"], r"use a token policy \(policy=token_transformer or policy=token_mlp\)"),
         (["policy=token_transformer"], "policy=token_transformer reads link tokens, which robot=vertebrate does not "
                                        "write: train it with robot=grammar"),
-        ([*GRAMMAR, "policy=token_mlp", "source=moe"], "source=moe fits a world model, and robot=grammar has none"),
+        ([*GRAMMAR, "policy=token_mlp", "source=pce"],
+         r"source=pce with robot=grammar: its world model, PCEDynamics \(world_model.model_state=full\), predicts "
+         "one robot's flat state"),
+        ([*GRAMMAR, "policy=token_mlp", "source=moe", "world_model=moe_thesis"],
+         r"its world model, CellEnsemble \(world_model.model_state=thesis\)"),
+        (["source=moe", "world_model.model_state=tokens"],
+         "world_model.model_state=tokens .GaussianEnsemble. models link tokens, which robot=vertebrate does not write"),
+        ([*GRAMMAR, "policy=token_mlp", "source=moe", "world_model.model.embedding=0"],
+         "world_model.model: embedding must be a positive integer, got 0"),
         ([*GRAMMAR, "policy=token_mlp", "algo=sac"], "algo=sac with robot=grammar: the token policies are TRPO's"),
         (["policy.name=cnn"], r"policy.name must be one of \['mlp', 'token_mlp', 'token_transformer'\], got 'cnn'"),
         (["algo.fisher_fraction=0"], r"algo: fisher_fraction must lie in \(0, 1\]"),
@@ -174,3 +182,13 @@ def test_a_grammar_run_with_a_token_policy_is_valid():
     for policy in ("token_transformer", "token_mlp"):
         validate_config(composed([*GRAMMAR, f"policy={policy}", "robot.training_morphologies=2",
                                   "evaluation.morphologies=all", "algo.fisher_fraction=0.2"]))
+
+
+def test_a_model_based_grammar_run_takes_the_ensemble_conditioned_on_the_morphology():
+    for policy in ("token_transformer", "token_mlp"):
+        cfg = composed([*GRAMMAR, f"policy={policy}", "source=moe"])
+        validate_config(cfg)
+        assert cfg.world_model.model._target_ == "unipolicy_rl.world_models.TokenEnsemble"
+        assert cfg.world_model.model_state == "tokens"
+    # The vertebrate's world_model=moe stays the flat ensemble.
+    assert composed(["source=moe"]).world_model.model._target_ == "unipolicy_rl.world_models.GaussianEnsemble"

@@ -30,7 +30,7 @@ from unipolicy_rl.collectors import (
 )
 from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
 from unipolicy_rl.envs import BatchedWalkerEnv
-from unipolicy_rl.envs.config import env_builder, env_kwargs
+from unipolicy_rl.envs.config import env_builder, morphology_env_kwargs
 from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
 from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
@@ -49,7 +49,8 @@ from unipolicy_rl.policy import (
 )
 from unipolicy_rl.token_statistics import TokenObservationStatistics
 from unipolicy_rl.validation import check_settings
-from unipolicy_rl.world_models import Dynamics, StateLayout
+from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout
+from unipolicy_rl.world_models.token_layout import TOKEN_STATE
 from unipolicy_rl.world_models.trainer import Trainer
 
 # ``source.kind``: real data only, or a world model fitted to them.
@@ -94,17 +95,16 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
 
     ``full_state`` adds the robots' full state (``state``) to every step, for a world model.
     The env is the config's robot's (:func:`~unipolicy_rl.envs.config.env_builder`): the
-    vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``.
+    vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``, whose
+    link tokens already hold every link's state (a world model reads them; ``full_state`` adds
+    nothing there).
     """
     frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
     env_class, kwargs = env_builder(cfg)
     kwargs = {**kwargs, "episode_length": None}
     if env_class is BatchedWalkerEnv:
         kwargs["full_state"] = full_state
-    elif full_state:
-        raise ValueError(f"full_state: {env_class.__name__} has no full state for a world model (robot=grammar "
-                         "trains model-free)")
-    if env_class is not BatchedWalkerEnv:
+    else:
         kwargs["env_class"] = env_class
     # The policy needs no env transform (its normaliser is inside it): say so, which also
     # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
@@ -144,21 +144,41 @@ class WorldModelParts:
 def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
     """``world_model`` (model and trainer) and ``imagination`` (settings and stopping rule) of a model source."""
     model = make_dynamics_model(cfg, action_dim)
+    layout = model.layout
     settings = instantiate(cfg.imagination)
-    reference_env = BatchedWalkerEnv(1, **env_kwargs(cfg), full_state=True)
+    env_class, kwargs = env_builder(cfg)
+    if env_class is BatchedWalkerEnv:
+        kwargs["full_state"] = True
+    reference_env = env_class(1, **kwargs)
     reference_env.close()  # only its specs are read
     imagination = Imagination(model, reference_env, instantiate(cfg.robot.reward), settings, cfg.seed,
                               cfg.robot.episode_length)
-    buffer = TransitionBuffer(settings.buffer_capacity, model.layout.from_full, model.memory_of)
+    buffer = TransitionBuffer(settings.buffer_capacity, layout.from_full, model.memory_of, layout.state_key,
+                              layout.build_keys)
     return WorldModelParts(model, instantiate(cfg.world_model.trainer), buffer, imagination)
 
 
-def make_dynamics_model(cfg: DictConfig, action_dim: int, device: torch.device | str | None = None) -> Dynamics:
-    """The world model's dynamics (``world_model.model``), sized for the robot and observation,
-    on ``device`` (default: the config's). ``cfg`` has a ``world_model`` (validate_config's check)."""
+def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout:
+    """What the world model's state holds (``world_model.model_state``): the vertebrate's
+    ``full`` or ``thesis`` state for its observation, or for ``robot=grammar`` every link's
+    token (``tokens``, padded to the env's ``max_links``)."""
+    if cfg.world_model.model_state == TOKEN_STATE:
+        check_settings(cfg, "robot", "source.kind", "world_model")  # validation's rule: tokens need robot=grammar
+        return TokenLayout(morphology_env_kwargs(cfg)["max_links"])
     robot = cfg.robot
-    layout = StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
-                                 cfg.world_model.model_state)
+    return StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
+                               cfg.world_model.model_state)
+
+
+def make_dynamics_model(cfg: DictConfig, action_dim: int | None = None,
+                        device: torch.device | str | None = None) -> Dynamics:
+    """The world model's dynamics (``world_model.model``), sized for the robot and observation
+    (:func:`model_layout`; ``action_dim`` by default the robot's: the vertebrate's actuated
+    joints, or a grammar robot's token slots), on ``device`` (default: the config's). ``cfg``
+    has a ``world_model`` (validate_config's check)."""
+    layout = model_layout(cfg)
+    if action_dim is None:
+        action_dim = layout.max_links if isinstance(layout, TokenLayout) else len(cfg.robot.settings.actuated)
     # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
     device = resolve_device(cfg.device) if device is None else torch.device(device)
     with torch.device(device):

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable
 
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
@@ -183,14 +183,33 @@ def _token_critic_builds(cfg: DictConfig) -> str | None:
     return None
 
 
-def _grammar_learns_model_free_with_trpo(cfg: DictConfig) -> str | None:
-    if robot_kind(cfg) != "grammar":
-        return None
-    if cfg.source.kind == "model":
-        return (f"source={cfg.source.get('name', cfg.source.kind)} fits a world model, and robot=grammar has none "
-                f"yet (one conditioned on the morphology is future work): use a real source (source=se or source=de)")
-    if cfg.algo.name != "trpo":
+def _grammar_learns_with_trpo(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) == "grammar" and cfg.algo.name != "trpo":
         return f"algo={cfg.algo.name} with robot=grammar: the token policies are TRPO's Gaussians, use algo=trpo"
+    return None
+
+
+def _world_model_reads_the_robot(cfg: DictConfig) -> str | None:
+    """A model source's world model must predict the state the robot's env writes: the
+    vertebrate's flat state, or a grammar robot's link tokens (world_model.model_state=tokens,
+    the TokenEnsemble that world_model=moe selects with robot=grammar)."""
+    from unipolicy_rl.world_models.token_layout import TOKEN_STATE  # (here: the world models import torch's stack)
+
+    world_model = cfg.get("world_model")
+    if cfg.source.kind != "model" or world_model is None:
+        return None  # (a missing group is _model_source_groups' to report)
+    state = world_model.get("model_state")
+    model = str(OmegaConf.select(world_model, "model._target_")).rsplit(".", 1)[-1]
+    source = cfg.source.get("name", cfg.source.kind)
+    if robot_kind(cfg) == "grammar" and state != TOKEN_STATE:
+        return (f"source={source} with robot=grammar: its world model, {model} (world_model.model_state={state}), "
+                f"predicts one robot's flat state, and robot=grammar observes robots of many morphologies as "
+                f"link tokens; the model conditioned on the morphology is world_model=moe's with robot=grammar "
+                f"(TokenEnsemble, world_model.model_state={TOKEN_STATE}): use source=moe with world_model=moe")
+    if robot_kind(cfg) != "grammar" and state == TOKEN_STATE:
+        return (f"world_model.model_state={TOKEN_STATE} ({model}) models link tokens, which "
+                f"robot={robot_kind(cfg)} does not write: train it with robot=grammar, or use the flat "
+                f"world_model=moe here")
     return None
 
 
@@ -211,7 +230,8 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot",): _known_robot,
     ("robot", "policy.name"): _policy_reads_the_robot,
     ("policy",): _token_critic_builds,
-    ("robot", "source.kind", "algo.name"): _grammar_learns_model_free_with_trpo,
+    ("robot", "algo.name"): _grammar_learns_with_trpo,
+    ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
 }
 
 
@@ -274,8 +294,7 @@ def validate_config(cfg: DictConfig) -> None:
         _built("world_model.trainer", lambda: instantiate(cfg.world_model.trainer))
         imagination = _built("imagination", lambda: instantiate(cfg.imagination))
         # On the meta device: the constructor's checks run, no weights are allocated.
-        model = _built("world_model.model",
-                       lambda: make_dynamics_model(cfg, len(cfg.robot.settings.actuated), device="meta"))
+        model = _built("world_model.model", lambda: make_dynamics_model(cfg, device="meta"))
         check_stopping_rule(imagination.stopping, model)
         if imagination.disagreement_cut is not None:
             check_members_disagree(model)

@@ -231,7 +231,7 @@ class Imagination:
         window = self.settings.start_epochs
         if window is not None and COLLECTED_IN in pool.keys():  # (a buffer from before the key: all of it)
             pool = pool[pool.get(COLLECTED_IN) > epoch - window]
-        pool = pool.select("state", "design")
+        pool = pool.select("state", "design", *self.model.layout.build_keys)
 
         def sample(n: int) -> TensorDictBase:
             return pool[torch.randint(pool.batch_size[0], (n,))]

@@ -2,9 +2,11 @@
 
 Each real epoch's batch (``[robots, steps]`` of whole episodes) becomes one row per real step:
 the model's state before and after (the robot's part of the env's ``full`` state, plus the
-model's memory columns where it has any), the action, the design, whether the step began an
-episode, and the epoch it was collected in. Steps the physics faulted on are left out: their
-next state is a repeat, not physics.
+model's memory columns where it has any; for grammar robots, their link tokens), the action,
+the design, the keys of the robot's build where the model has any (a grammar robot's masks,
+parents and morphology, which an imagined branch from that state carries), whether the step
+began an episode, and the epoch it was collected in. Steps the physics faulted on are left out:
+their next state is a repeat, not physics.
 """
 
 from __future__ import annotations
@@ -23,18 +25,20 @@ StateView = Callable[[torch.Tensor], torch.Tensor]
 MemoryOf = Callable[[TensorDictBase], "tuple[torch.Tensor, torch.Tensor] | None"]
 
 
-def transitions(batch: TensorDictBase, state_of: StateView, memory_of: MemoryOf | None = None) -> TensorDict:
+def transitions(batch: TensorDictBase, state_of: StateView, memory_of: MemoryOf | None = None,
+                state_key: str = "state", build_keys: tuple[str, ...] = ()) -> TensorDict:
     """One row per real step of ``batch`` (``[robots, steps]``) for the model to fit: state,
-    action, design, next state, and whether the state began an episode. Steps the physics
-    faulted on are left out.
+    action, design, next state, the ``build_keys`` as the step found them, and whether the state
+    began an episode. Steps the physics faulted on are left out.
 
-    ``state_of`` maps the env's ``full`` state to the model's; ``memory_of`` (a model's
+    ``state_of`` maps the env's ``state_key`` entry (the ``full`` state; a grammar robot's
+    ``tokens``) to the model's state (the layout's ``from_full``); ``memory_of`` (a model's
     :meth:`~unipolicy_rl.world_models.Dynamics.memory_of`) gives the memory columns to append to
     the states before and after each step, or None for a model without memory."""
     keep = ~batch.get(("next", "physics_fault")).squeeze(-1)
     start = torch.zeros(batch.batch_size, dtype=torch.bool)
     start[..., 0] = True  # every epoch starts every robot from a reset
-    state, next_state = state_of(batch.get("state")), state_of(batch.get(("next", "state")))
+    state, next_state = state_of(batch.get(state_key)), state_of(batch.get(("next", state_key)))
     memory = None if memory_of is None else memory_of(batch)
     if memory is not None:
         state, next_state = torch.cat([state, memory[0]], -1), torch.cat([next_state, memory[1]], -1)
@@ -45,6 +49,7 @@ def transitions(batch: TensorDictBase, state_of: StateView, memory_of: MemoryOf 
             "design": batch.get("design"),
             "next_state": next_state,
             EPISODE_START: start,
+            **{key: batch.get(key) for key in build_keys},
         },
         batch_size=batch.batch_size,
     )
@@ -56,14 +61,18 @@ class TransitionBuffer:
 
     Args:
         capacity: transitions kept.
-        state_of: the env's ``full`` state -> the model's state (``StateLayout.from_full``).
+        state_of: the env's ``state_key`` entry -> the model's state (the layout's ``from_full``).
         memory_of: the model's memory columns of a real batch (``Dynamics.memory_of``).
+        state_key, build_keys: the layout's: where the env holds the robot's state, and the keys
+            of its build an imagined branch carries (:func:`transitions`).
     """
 
-    def __init__(self, capacity: int, state_of: StateView, memory_of: MemoryOf | None = None) -> None:
+    def __init__(self, capacity: int, state_of: StateView, memory_of: MemoryOf | None = None,
+                 state_key: str = "state", build_keys: tuple[str, ...] = ()) -> None:
         if not (isinstance(capacity, int) and capacity >= 1):
             raise ValueError(f"buffer capacity must be a positive integer, got {capacity!r}")
         self.state_of, self.memory_of = state_of, memory_of
+        self.state_key, self.build_keys = state_key, tuple(build_keys)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(capacity), batch_size=1)
 
     def __len__(self) -> int:
@@ -71,7 +80,7 @@ class TransitionBuffer:
 
     def extend(self, batch: TensorDictBase, epoch: int) -> TensorDict:
         """Adds a real epoch's batch, each row tagged with ``epoch``; returns the rows added."""
-        rows = transitions(batch, self.state_of, self.memory_of)
+        rows = transitions(batch, self.state_of, self.memory_of, self.state_key, self.build_keys)
         if len(self.buffer) == 0 or COLLECTED_IN in self.buffer[:1].keys():  # (not into an older run's buffer)
             rows.set(COLLECTED_IN, torch.full(rows.batch_size, epoch, dtype=torch.long))
         self.buffer.extend(rows)

@@ -2,6 +2,10 @@
 
     python -m unipolicy_rl.envs.gait                 # DE robot, prints metres walked
     python -m unipolicy_rl.envs.gait --gif walk.gif  # and records the episode
+
+:class:`RandomPhaseGait` is the same idea for any batch of robots, as a TorchRL policy with a
+random phase per robot and joint and noise on top: data that moves every body, of any
+morphology, before any policy is trained (a world model's accuracy is measured on it).
 """
 
 from __future__ import annotations
@@ -10,6 +14,8 @@ import argparse
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from tensordict import TensorDictBase
 
 from unipolicy_rl.envs.design import Design, DesignDistribution
 from unipolicy_rl.envs.walker import WalkerEnv
@@ -30,6 +36,27 @@ class SineGait:
     def action(self, step: int, control_period: float) -> np.ndarray:
         time = step * control_period
         return self.amplitude * np.sin(2 * np.pi * self.frequency * time + np.asarray(self.phases))
+
+
+class RandomPhaseGait:
+    """A TorchRL policy for a batched env with actions ``[robots, slots]`` in [-1, 1]: slot ``j`` of
+    robot ``i`` follows ``amplitude * sin(2 pi frequency t + phase[i, j])`` plus Gaussian ``noise``,
+    clipped; phases drawn once, uniform, from ``seed``. One instance per rollout (it counts the steps
+    from its first call); the same seed gives the same actions."""
+
+    def __init__(self, robots: int, slots: int, control_period: float, amplitude: float = 0.6,
+                 frequency: float = 1.5, noise: float = 0.2, seed: int = 0) -> None:
+        self.generator = torch.Generator().manual_seed(seed)
+        self.phase = torch.rand(robots, slots, generator=self.generator) * 2 * np.pi
+        self.control_period, self.amplitude, self.frequency, self.noise = control_period, amplitude, frequency, noise
+        self.step = 0
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        time = self.step * self.control_period
+        wave = self.amplitude * torch.sin(2 * np.pi * self.frequency * time + self.phase)
+        tensordict.set("action", (wave + self.noise * torch.randn(wave.shape, generator=self.generator)).clamp(-1, 1))
+        self.step += 1
+        return tensordict
 
 
 def walk(env: WalkerEnv, gait: SineGait, design: Design | None = None, frames: list | None = None) -> dict:

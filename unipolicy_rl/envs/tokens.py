@@ -72,6 +72,19 @@ FEATURE_INDEX: dict[str, int] = {name: index for index, name in enumerate(TOKEN_
 
 # The root token is read by the reward as an observation of the thesis layout.
 assert [FEATURE_INDEX[name] for name in ("x", "y", "z", "vx")] == [BASE_X, BASE_Y, BASE_Z, BASE_X_DOT]
+# Every real link has exactly one kind; padding has none (it is all zeros).
+KIND_FEATURES = [FEATURE_INDEX[f"kind_{name}"] for name in LINK_KINDS]
+
+
+def real_tokens(tokens: torch.Tensor) -> torch.Tensor:
+    """``[*, L]`` bool: the ``TOKEN_MASK`` the tokens themselves imply (a real link has a kind,
+    padding is all zeros), for code that holds the tokens alone (a world model's state)."""
+    return tokens[..., KIND_FEATURES].sum(-1) > 0.5
+
+
+def driven_tokens(tokens: torch.Tensor) -> torch.Tensor:
+    """``[*, L]`` bool: the ``ACTION_MASK`` the tokens themselves imply (their ``actuated`` feature)."""
+    return tokens[..., FEATURE_INDEX["actuated"]] > 0.5
 
 
 def walking_observation(tensordict: TensorDictBase) -> torch.Tensor:

@@ -1,6 +1,7 @@
 """Surrogate world models: what the robot's next state will be, learned from real transitions.
 
-A :class:`Dynamics` predicts (neural ensembles and closed-form polynomial-chaos models alike);
+A :class:`Dynamics` predicts (neural ensembles and closed-form polynomial-chaos models alike;
+:class:`TokenEnsemble` for robots of any grammar morphology, on a :class:`TokenLayout`);
 :class:`ModelTrainer` or :class:`ClosedFormTrainer` fits it; :func:`make_world_model`
 composes it into TorchRL's ``WorldModel``; :class:`ImaginedWalkerEnv` rolls policies through it.
 :mod:`~unipolicy_rl.evaluation.accuracy` measures its trajectories against real ones.
@@ -12,6 +13,8 @@ from unipolicy_rl.world_models.ensemble import CellEnsemble, GaussianEnsemble
 from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce import PCEDynamics, SparsePCEDynamics, ThesisPCEDynamics
+from unipolicy_rl.world_models.token_ensemble import TokenEnsemble
+from unipolicy_rl.world_models.token_layout import TokenLayout
 from unipolicy_rl.world_models.trainer import ClosedFormTrainer, FitReport, ModelTrainer, split_transitions
 
 __all__ = [
@@ -29,6 +32,8 @@ __all__ = [
     "SparsePCEDynamics",
     "StateLayout",
     "ThesisPCEDynamics",
+    "TokenEnsemble",
+    "TokenLayout",
     "make_world_model",
     "member_returns",
     "split_transitions",

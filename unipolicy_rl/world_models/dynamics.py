@@ -19,6 +19,10 @@ from torch import nn
 
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.networks import Standardizer
+from unipolicy_rl.world_models.token_layout import TokenLayout
+
+# What a model's state vector holds: one robot's bodies and joints, or a grammar robot's link tokens.
+Layout = StateLayout | TokenLayout
 
 
 @runtime_checkable
@@ -30,7 +34,7 @@ class Dynamics(Protocol):
         members: how many predictors there are (``member`` indices run over ``range(members)``).
     """
 
-    layout: StateLayout
+    layout: Layout
     members: int
 
     @property
@@ -70,10 +74,10 @@ class NeuralDynamics(nn.Module):
     member's own samples), and :meth:`set_elites` hears each member's validation error.
     """
 
-    layout: StateLayout
+    layout: Layout
     members: int
 
-    def __init__(self, layout: StateLayout, input_size: int, target_size: int) -> None:
+    def __init__(self, layout: Layout, input_size: int, target_size: int) -> None:
         super().__init__()
         self.layout = layout
         self.input_norm = Standardizer(input_size)

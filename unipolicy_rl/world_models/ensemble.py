@@ -1,7 +1,7 @@
 """Neural-network ensembles that predict the robot's next state (the MOE surrogates).
 
-Both are :class:`~unipolicy_rl.world_models.dynamics.NeuralDynamics`, so the trainer, the world
-model and the imagined env take either:
+All are :class:`~unipolicy_rl.world_models.dynamics.NeuralDynamics`, so the trainer, the world
+model and the imagined env take any of them:
 
 * :class:`GaussianEnsemble` (``world_model=moe``, the default): what model-based RL learned
   since the thesis (PETS, MBPO, mbrl-lib). Every member sees the design (l, rho) as an input,
@@ -13,7 +13,9 @@ model and the imagined env take either:
   network and velocity network (2 x 200 ReLU) predicting the next state itself, trained
   by mean squared error on the data of its own cell only; a trajectory uses its design's cell.
 
-Both standardise inputs and targets (floored scales); prediction runs each member only on
+The Gaussian head, the elites and the members' draw are :class:`ProbabilisticEnsemble`'s, which
+the morphology-conditioned :class:`~unipolicy_rl.world_models.token_ensemble.TokenEnsemble`
+shares. All standardise inputs and targets (floored scales); prediction runs each member only on
 the rows assigned to it.
 """
 
@@ -30,10 +32,12 @@ from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.networks import EnsembleMLP
 
 
-def run_members(network: EnsembleMLP, x: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
+def run_members(network: nn.Module, x: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
     """``network`` member ``member[i]`` applied to row ``x[i]``, rows grouped by member.
 
-    Rows are packed into ``[members, max rows per member, in]``, so the cost is about one
+    ``network`` maps ``[members, rows, *row shape]`` to ``[members, rows, *out shape]`` (an
+    :class:`EnsembleMLP` has row shape ``[in]``; a token network ``[tokens, in]``). Rows are
+    packed into ``[members, max rows per member, *row shape]``, so the cost is about one
     member's pass over the batch rather than every member's.
     """
     members = network.members
@@ -43,23 +47,25 @@ def run_members(network: EnsembleMLP, x: torch.Tensor, member: torch.Tensor) -> 
     counts = torch.bincount(sorted_member, minlength=members)
     starts = torch.cumsum(counts, 0) - counts
     slot = torch.arange(member.numel(), device=x.device) - starts[sorted_member]
-    packed = x.new_zeros(members, int(counts.max()), x.shape[-1])
+    packed = x.new_zeros(members, int(counts.max()), *x.shape[1:])
     packed[sorted_member, slot] = x[order]
     out = network(packed)
-    result = out.new_empty(member.numel(), out.shape[-1])
+    result = out.new_empty(member.numel(), *out.shape[2:])
     result[order] = out[sorted_member, slot]
     return result
 
 
-class GaussianEnsemble(NeuralDynamics):
-    """Probabilistic ensemble of design-conditioned state-change predictors (PETS/MBPO style).
+class ProbabilisticEnsemble(NeuralDynamics):
+    """What every Gaussian ensemble shares (PETS/MBPO style): ``members`` networks, each output a
+    mean and a log-variance softly bounded by learned limits, trained by Gaussian NLL; the
+    ``elites`` best members on validation data predict imagined trajectories.
 
     Args:
         layout: the state the model predicts.
-        action_dim: number of actions.
+        input_size, target_size: sizes of one row of :meth:`inputs` and :meth:`targets` (the last
+            dimension: a token model's rows are tokens).
         members: networks in the ensemble (MBPO: 7).
         elites: how many of the best members (validation MSE) imagined trajectories draw from (MBPO: 5).
-        hidden, activation: each member's MLP.
         min_log_var, max_log_var: initial soft bounds of the predicted log-variance per output;
             the bounds are learned (mbrl-lib starts them at -10 and 0.5), with a small penalty
             on their width so the variance cannot run off where data is thin.
@@ -67,46 +73,38 @@ class GaussianEnsemble(NeuralDynamics):
 
     BOUND_PENALTY = 0.01
 
-    def __init__(self, layout: StateLayout, action_dim: int, members: int = 7, elites: int = 5,
-                 hidden: Sequence[int] = (200, 200, 200), activation: str = "silu",
-                 min_log_var: float = -10.0, max_log_var: float = 0.5) -> None:
+    def __init__(self, layout, input_size: int, target_size: int, members: int, elites: int,
+                 min_log_var: float, max_log_var: float) -> None:
         if not (isinstance(members, int) and members >= 1):
             raise ValueError(f"members must be a positive integer, got {members!r}")
         if not (isinstance(elites, int) and 1 <= elites <= members):
             raise ValueError(f"elites must be an integer in [1, members={members}], got {elites!r}")
         if not min_log_var < max_log_var:
             raise ValueError(f"min_log_var ({min_log_var!r}) must be below max_log_var ({max_log_var!r})")
-        input_size = layout.feature_size + action_dim + 2
-        super().__init__(layout, input_size, layout.size)
+        super().__init__(layout, input_size, target_size)
         self.members = members
-        self.network = EnsembleMLP(members, input_size, 2 * layout.size, tuple(hidden), activation)
-        self.min_log_var = nn.Parameter(torch.full((layout.size,), float(min_log_var)))
-        self.max_log_var = nn.Parameter(torch.full((layout.size,), float(max_log_var)))
+        self.min_log_var = nn.Parameter(torch.full((target_size,), float(min_log_var)))
+        self.max_log_var = nn.Parameter(torch.full((target_size,), float(max_log_var)))
         self.register_buffer("elites", torch.arange(elites))
 
-    def inputs(self, state, action, design):
-        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design], dim=-1)
-
-    def targets(self, state, next_state):
-        return next_state - state
-
-    def _mean_and_log_var(self, output: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def mean_and_log_var(self, output: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A network's raw output ``[..., 2 * targets]`` as the mean and the bounded log-variance."""
         mean, raw = output.chunk(2, dim=-1)
         log_var = self.max_log_var - F.softplus(self.max_log_var - raw)
         log_var = self.min_log_var + F.softplus(log_var - self.min_log_var)
         return mean, log_var
 
-    def training_loss(self, x, y):
-        mean, log_var = self._mean_and_log_var(self.network(x))
-        return (((mean - y) ** 2) * torch.exp(-log_var) + log_var).mean(dim=-1)
+    @staticmethod
+    def gaussian_nll(mean: torch.Tensor, log_var: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Gaussian negative log-likelihood per output, without its constant."""
+        return ((mean - y) ** 2) * torch.exp(-log_var) + log_var
+
+    def sample_change(self, mean: torch.Tensor, log_var: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        """The standardised change a member predicts: its mean, plus its noise unless ``deterministic``."""
+        return mean if deterministic else mean + torch.randn_like(mean) * torch.exp(0.5 * log_var)
 
     def regularization(self):
         return self.BOUND_PENALTY * (self.max_log_var.sum() - self.min_log_var.sum())
-
-    @torch.no_grad()
-    def validation_error(self, x, y):
-        mean, _ = self._mean_and_log_var(self.network(x))
-        return ((mean - y) ** 2).mean(dim=-1)
 
     def set_elites(self, validation_error):
         self.elites.copy_(torch.argsort(validation_error)[: self.elites.numel()])
@@ -119,11 +117,43 @@ class GaussianEnsemble(NeuralDynamics):
         pick = torch.randint(self.elites.numel(), design.shape[:-1], generator=generator, device=design.device)
         return self.elites[pick]
 
+
+class GaussianEnsemble(ProbabilisticEnsemble):
+    """Probabilistic ensemble of design-conditioned state-change predictors (PETS/MBPO style).
+
+    Args:
+        layout: the state the model predicts.
+        action_dim: number of actions.
+        members, elites, min_log_var, max_log_var: as :class:`ProbabilisticEnsemble`.
+        hidden, activation: each member's MLP.
+    """
+
+    def __init__(self, layout: StateLayout, action_dim: int, members: int = 7, elites: int = 5,
+                 hidden: Sequence[int] = (200, 200, 200), activation: str = "silu",
+                 min_log_var: float = -10.0, max_log_var: float = 0.5) -> None:
+        input_size = layout.feature_size + action_dim + 2
+        super().__init__(layout, input_size, layout.size, members, elites, min_log_var, max_log_var)
+        self.network = EnsembleMLP(members, input_size, 2 * layout.size, tuple(hidden), activation)
+
+    def inputs(self, state, action, design):
+        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design], dim=-1)
+
+    def targets(self, state, next_state):
+        return next_state - state
+
+    def training_loss(self, x, y):
+        return self.gaussian_nll(*self.mean_and_log_var(self.network(x)), y).mean(dim=-1)
+
+    @torch.no_grad()
+    def validation_error(self, x, y):
+        mean, _ = self.mean_and_log_var(self.network(x))
+        return ((mean - y) ** 2).mean(dim=-1)
+
     @torch.no_grad()
     def predict(self, state, action, design, member, deterministic=False):
         x = self.input_norm(self.inputs(state, action, design))
-        mean, log_var = self._mean_and_log_var(run_members(self.network, x.reshape(-1, x.shape[-1]), member))
-        change = mean if deterministic else mean + torch.randn_like(mean) * torch.exp(0.5 * log_var)
+        mean, log_var = self.mean_and_log_var(run_members(self.network, x.reshape(-1, x.shape[-1]), member))
+        change = self.sample_change(mean, log_var, deterministic)
         return state + self.target_norm.inverse(change).reshape(state.shape)
 
 

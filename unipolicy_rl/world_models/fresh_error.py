@@ -42,6 +42,26 @@ def rank_correlation(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((ranks[0] * ranks[1]).sum() / denominator) if denominator > 0 else float("nan")
 
 
+def changing_outputs(change: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The variance of each output's real change over the rows ``[n, outputs]``, and which outputs
+    vary (the ones an error share is taken over)."""
+    variance = change.var(0, correction=0)
+    signal = variance > MIN_VARIANCE
+    if not signal.any():
+        raise ValueError("the real state changes do not vary over these transitions: there is nothing to explain")
+    return variance, signal
+
+
+def no_change_error(transitions: TensorDictBase, robot_size: int) -> float:
+    """The ``fresh_error`` figure of a model that predicts no change, on ``transitions``: per output
+    ``E[change^2] / Var(change)``, so 1 plus the squared mean change over its variance. The floor
+    any model of these transitions should beat (a drifting output puts it above 1)."""
+    rows = transitions.reshape(-1)
+    change = (rows.get("next_state") - rows.get("state"))[..., :robot_size].float()
+    variance, signal = changing_outputs(change)
+    return float((change.square().mean(0)[signal] / variance[signal]).mean())
+
+
 @torch.no_grad()
 def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "model/") -> dict[str, float]:
     """``{prefix}fresh_error`` and ``{prefix}fresh_spread_rank`` of ``model`` on ``transitions``.
@@ -67,10 +87,7 @@ def fresh_error(model: Dynamics, transitions: TensorDictBase, prefix: str = "mod
     # the model shifts on, not predictions (a lagged change would count the same error twice).
     robot = model.layout.robot_size
     predictions, change = predictions[..., :robot], change[..., :robot]
-    variance = change.var(0, correction=0)
-    signal = variance > MIN_VARIANCE
-    if not signal.any():
-        raise ValueError("the real state changes do not vary over these transitions: there is nothing to explain")
+    variance, signal = changing_outputs(change)
     mean_prediction = predictions.mean(0)
     unexplained = (mean_prediction - change).square().mean(0)[signal] / variance[signal]
     scale = variance[signal].sqrt()

@@ -6,12 +6,16 @@ the dynamics head predicts the next state, the reward head is the real env's
 :func:`~unipolicy_rl.envs.walking_reward` of it (no learned reward), the done head ends a
 trajectory whose prediction blew up (and, with a
 :class:`~unipolicy_rl.world_models.disagreement.DisagreementCut`, one whose members disagree
-about the next state past its threshold), and the decoder derives the policy's ``observation``.
-:class:`ImaginedWalkerEnv` is TorchRL's :class:`~torchrl.envs.model_based.ModelBasedEnvBase`
-around it, presenting the keys and specs of :class:`~unipolicy_rl.envs.BatchedWalkerEnv`
-(``observation``, ``design``, ``physics_fault``, ``state``, reward, done/terminated/truncated)
-so the same policy, value estimator and :class:`~unipolicy_rl.objectives.TRPOUpdater` work
-on imagined data as on real data.
+about the next state past its threshold), and the decoder derives what the policy reads (the
+layout's ``observation_key``). :class:`ImaginedWalkerEnv` is TorchRL's
+:class:`~torchrl.envs.model_based.ModelBasedEnvBase` around it, presenting the keys and specs of
+the real env: :class:`~unipolicy_rl.envs.BatchedWalkerEnv`'s (``observation``, ``design``,
+``physics_fault``, reward, done/terminated/truncated) for a :class:`StateLayout`, or for grammar
+robots (a :class:`~unipolicy_rl.world_models.token_layout.TokenLayout`)
+:class:`~unipolicy_rl.envs.MorphologyWalkerEnv`'s (``tokens`` and the build keys ``token_mask``,
+``token_parent``, ``action_mask``, ``morphology``, carried unchanged from each branch's real
+start), beside the model's ``state`` and ``member``, so the same policy, value estimator and
+:class:`~unipolicy_rl.objectives.TRPOUpdater` work on imagined data as on real data.
 """
 
 from __future__ import annotations
@@ -137,7 +141,8 @@ class DoneHead(nn.Module):
 
 
 class ObservationDecoder(nn.Module):
-    """The policy's observation of the predicted state (:meth:`StateLayout.observation`)."""
+    """What the policy reads of the predicted state (the layout's ``observation``: the flat
+    observation, or the tokens)."""
 
     def __init__(self, model: Dynamics) -> None:
         super().__init__()
@@ -185,7 +190,7 @@ def make_world_model(model: Dynamics, reward_weights: RewardWeights, member_per_
                              out_keys=[*flags, (nxt, DISAGREEMENT_CUT)]),
         )
     decoder = TensorDictModule(ObservationDecoder(model), in_keys=[(nxt, "state"), (nxt, "design")],
-                               out_keys=[(nxt, "observation")])
+                               out_keys=[(nxt, model.layout.observation_key)])
     return WorldModel(encoder, dynamics, reward, done_head=done, decoder=decoder)
 
 
@@ -204,12 +209,15 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
     brings none, and assigns each its member: drawn from the model's elites, or the row's own
     member of ``members`` where given (a comparison across members must keep each row's member
     when TorchRL restarts a row that faulted, since its reset brings only the ``_reset`` mask).
+    The keys of the robot's build (the layout's ``build_keys``: a grammar robot's masks, parents
+    and morphology) come with each start state and stay as they are for the whole branch.
 
     Args:
         world_model: from :func:`make_world_model`.
-        reference_env: a ``BatchedWalkerEnv`` (or a ``TransformedEnv`` of one) whose action,
-            reward and done specs this env copies; it is not stepped.
-        start_states: ``n -> TensorDict(state, design)`` of real start states.
+        reference_env: the real env (a ``BatchedWalkerEnv``, or a ``MorphologyWalkerEnv`` for a
+            token model; or a ``TransformedEnv`` of one) whose action, reward and done specs, and
+            the specs of the design, fault and build keys, this env copies; it is not stepped.
+        start_states: ``n -> TensorDict(state, design, *build keys)`` of real start states.
         batch_size: number of trajectories.
         members: ``[batch_size]`` the member of every row, for good (None: drawn at every reset).
     """
@@ -220,16 +228,23 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
         super().__init__(world_model.step_module, device="cpu", batch_size=shape, allow_done_after_reset=True)
         model = world_model.dynamics.module.model
         one = (0,) * len(reference_env.batch_size)
-        design = reference_env.observation_spec["design"][one]
+        layout = model.layout
+
+        def copied(key):
+            spec = reference_env.observation_spec[key][one]
+            return spec.expand(*shape, *spec.shape).clone()
+
         fault = reference_env.observation_spec["physics_fault"][one]
         self.observation_spec = Composite(
-            observation=Unbounded((*shape, model.layout.observation_size), dtype=torch.float32),
-            design=design.expand(*shape, *design.shape).clone(),
-            physics_fault=fault.expand(*shape, *fault.shape).clone(),
-            state=Unbounded((*shape, model.layout.size), dtype=torch.float32),
-            member=Categorical(model.members, (*shape, 1), dtype=torch.long),
+            {layout.observation_key: Unbounded((*shape, *layout.observation_shape), dtype=torch.float32),
+             "design": copied("design"),
+             "physics_fault": fault.expand(*shape, *fault.shape).clone(),
+             "state": Unbounded((*shape, layout.size), dtype=torch.float32),
+             "member": Categorical(model.members, (*shape, 1), dtype=torch.long),
+             **{key: copied(key) for key in layout.build_keys}},
             shape=shape,
         )
+        self.build_keys = layout.build_keys
         # A world model with the disagreement cut reports it at every step (zero at a reset).
         self.cuts = ("next", DISAGREEMENT_CUT) in world_model.out_keys
         if self.cuts:
@@ -247,6 +262,8 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         out = self.world_model(tensordict.copy()).get("next")
+        for key in self.build_keys:  # the robot's build: no step changes it
+            out.set(key, tensordict.get(key))
         keys = [*self.observation_spec.keys(), *self.full_reward_spec.keys(), *self.full_done_spec.keys()]
         return out.select(*keys)
 
@@ -255,15 +272,16 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
         mask = torch.ones(n, dtype=torch.bool)
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(n)
+        starting = ("state", "design", *self.build_keys)
         if tensordict is None or "state" not in tensordict.keys():
             start = self.start_states(n)
         else:
-            start = tensordict.select("state", "design", *(["member"] if "member" in tensordict.keys() else []))
+            start = tensordict.select(*starting, *(["member"] if "member" in tensordict.keys() else []))
             if mask.any() and "_reset" in tensordict.keys():
                 fresh = self.start_states(int(mask.sum()))
                 start = start.clone()
-                start["state"][mask] = fresh["state"]
-                start["design"][mask] = fresh["design"]
+                for key in starting:
+                    start[key][mask] = fresh[key]
                 if "member" in start.keys():
                     start["member"][mask] = draw_members(self.model, fresh["design"]).unsqueeze(-1)
         state, design = start.get("state").float(), start.get("design").float()
@@ -272,13 +290,15 @@ class ImaginedWalkerEnv(ModelBasedEnvBase):
             member = self.members.clone()
         elif member is None:
             member = draw_members(self.model, design).unsqueeze(-1)
+        layout = self.model.layout
         out = TensorDict(
             {
                 "state": state,
                 "design": design,
                 "member": member,
-                "observation": self.model.layout.observation(state, design),
+                layout.observation_key: layout.observation(state, design),
                 "physics_fault": torch.zeros(n, 1, dtype=torch.bool),
+                **{key: start.get(key) for key in self.build_keys},
             },
             batch_size=self.batch_size,
         )

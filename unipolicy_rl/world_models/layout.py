@@ -14,11 +14,17 @@ angles and rates. Two views are derived here and nowhere else:
 A model whose prediction needs more than the robot's state (the thesis' ME-PCE needs the step
 within the episode and the last actions) carries it as ``memory_size`` columns after the
 robot's state; the model fills them (``Dynamics.memory_of``), the env only passes them on.
+
+The keys (:attr:`StateLayout.state_key`, ``observation_key``, ``build_keys``) say where the
+replay buffer reads the state and what the imagined env writes for the policy; the link-token
+layout of a grammar robot (:class:`~unipolicy_rl.world_models.token_layout.TokenLayout`) has
+the same members with other keys.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -35,6 +41,13 @@ class StateLayout:
     ``BatchedWalkerEnv(full_state=True)``); ``observation_columns`` place the policy's
     observation within the state.
     """
+
+    # The env key the robot's state is read from (a ``BatchedWalkerEnv(full_state=True)``'s).
+    state_key: ClassVar[str] = "state"
+    # The key the policy reads (:meth:`observation`), and the keys of the robot's build that an
+    # imagined step carries unchanged from its start state (none: one robot, one build).
+    observation_key: ClassVar[str] = "observation"
+    build_keys: ClassVar[tuple[str, ...]] = ()
 
     num_bodies: int
     num_joint_values: int
@@ -80,6 +93,11 @@ class StateLayout:
     @property
     def observation_size(self) -> int:
         return len(self.observation_columns) + (2 if self.append_design else 0)
+
+    @property
+    def observation_shape(self) -> tuple[int, ...]:
+        """The shape of one robot's :meth:`observation`."""
+        return (self.observation_size,)
 
     @property
     def position_columns(self) -> list[int]:
