@@ -114,6 +114,25 @@ def real_data(run: Path | None, episodes: int | None) -> TensorDict:
     return data
 
 
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """The data and split arguments this benchmark and ``pce_selection.py`` share (:func:`real_data`,
+    :func:`split`)."""
+    parser.add_argument("run", type=Path, nargs="?", help="a model-based run's directory or its checkpoint.pt")
+    parser.add_argument("--episodes", type=int, default=None,
+                        help="instead of a run: this many cached gait-plus-noise episodes (world_model_setup.py)")
+    parser.add_argument("--fit-transitions", type=int, default=30_000)
+    parser.add_argument("--test-transitions", type=int, default=10_000)
+
+
+def checked_data(args: argparse.Namespace, specs: list[str]) -> tuple[TensorDict, TensorDict, TensorDict]:
+    """(all the rows, the fit part, the held-out part) the data arguments name, after every model
+    spec is checked: a bad spec fails before the data load and any fit."""
+    for spec in specs:
+        setup.parse_model(spec)
+    data = real_data(args.run, args.episodes)
+    return data, *split(data, args.fit_transitions, args.test_transitions)
+
+
 def split(data: TensorDict, fit_transitions: int, test_transitions: int) -> tuple[TensorDict, TensorDict]:
     """(the ``fit_transitions`` rows before the last ``test_transitions``, those last rows)."""
     if len(data) <= test_transitions:
@@ -222,11 +241,7 @@ def spread_rank_correlation(model, start: torch.Tensor, actions: torch.Tensor, d
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, nargs="?", help="a model-based run's directory or its checkpoint.pt")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="instead of a run: this many cached gait-plus-noise episodes (world_model_setup.py)")
-    parser.add_argument("--fit-transitions", type=int, default=30_000)
-    parser.add_argument("--test-transitions", type=int, default=10_000)
+    add_data_arguments(parser)
     parser.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 8, 25])
     parser.add_argument("--starts", type=int, default=2000, help="branches per horizon")
     parser.add_argument("--models", nargs="+", default=["pce", "moe"],
@@ -236,10 +251,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    for spec in args.models:
-        setup.parse_model(spec)  # a bad spec fails before any fit
-    data = real_data(args.run, args.episodes)
-    fit, test = split(data, args.fit_transitions, args.test_transitions)
+    data, fit, test = checked_data(args, args.models)
     print(f"{args.run or f'{args.episodes} cached episodes'}: {len(data)} real transitions; {len(fit)} fit the "
           f"models, the last {len(test)} are held out")
     horizons = sorted(set(args.horizons))

@@ -24,11 +24,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-from pathlib import Path
 
 import torch
 import world_model_setup as setup
-from branch_accuracy import fit_and_measure, real_data, split
+from branch_accuracy import add_data_arguments, checked_data, fit_and_measure
 
 DEFAULT_CANDIDATES = ["pce", "pce:lags=1", "pce_sparse", "pce_sparse:lags=1"]
 
@@ -40,11 +39,7 @@ def training_horizon() -> int:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, nargs="?", help="a model-based run's directory or its checkpoint.pt")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="instead of a run: this many cached gait-plus-noise episodes (world_model_setup.py)")
-    parser.add_argument("--fit-transitions", type=int, default=30_000)
-    parser.add_argument("--test-transitions", type=int, default=10_000)
+    add_data_arguments(parser)
     parser.add_argument("--candidates", nargs="+", default=DEFAULT_CANDIDATES, help="NAME[:key=value,...] each")
     parser.add_argument("--horizon", type=int, default=None,
                         help="branch length to rank by (default: world_model=pce's imagination.horizon.end)")
@@ -55,11 +50,7 @@ def main() -> None:
     horizon = args.horizon or training_horizon()
     if horizon < 1:
         raise ValueError(f"--horizon must be a positive number of steps, got {horizon}")
-    for spec in args.candidates:
-        setup.parse_model(spec)  # a bad spec fails before any fit
-
-    data = real_data(args.run, args.episodes)
-    fit, test = split(data, args.fit_transitions, args.test_transitions)
+    data, fit, test = checked_data(args, args.candidates)
     print(f"{args.run or f'{args.episodes} cached episodes'}: {len(fit)} transitions fit every candidate, "
           f"{len(test)} later ones hold the branches; ranked by the {horizon}-step displacement error")
     horizons = sorted({1, horizon})

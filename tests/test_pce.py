@@ -388,14 +388,17 @@ def test_the_one_step_pce_sparse_basis_keeps_only_control_interactions():
         PCEDynamics(TOY, action_dim=2, truncation="box")
 
 
+# A two-epoch source=pce run, small imagined batches and checks (tests here and in test_pce_narx.py).
+PCE_TINY = ["source=pce", "workers=1", "epochs=2", "evaluation.every_steps=1", "imagination.steps_per_batch=60",
+            "imagination.horizon.start=3", "imagination.horizon.end=3", "imagination.stopping.max_updates=2",
+            "imagination.stopping.check_every=2", "imagination.stopping.check_starts=4",
+            "imagination.stopping.check_horizon=3"]
+
+
 def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 
-    result = run_train(*TINY, "source=pce", "workers=1", "epochs=2", "evaluation.every_steps=1",
-                       "imagination.steps_per_batch=60", "imagination.horizon.start=3",
-                       "imagination.horizon.end=3", "imagination.stopping.max_updates=2",
-                       "imagination.stopping.check_every=2", "imagination.stopping.check_starts=4",
-                       "imagination.stopping.check_horizon=3", f"hydra.run.dir={tmp_path}")
+    result = run_train(*TINY, *PCE_TINY, f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()
     assert "model/validation_mse" in text and "imagined/reward_per_step" in text

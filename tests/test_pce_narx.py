@@ -179,14 +179,11 @@ def test_bad_lags_are_refused_by_name(model_class, bad):
 
 
 def test_train_with_a_lagged_pce_and_the_disagreement_cut_runs_end_to_end(tmp_path):
+    from test_pce import PCE_TINY
     from test_train import TINY, run_train
 
-    result = run_train(*TINY, "source=pce", "world_model.model.lags=1", "world_model.model.order=1",
-                       "imagination.disagreement_cut=1.0", "workers=1", "epochs=2", "evaluation.every_steps=1",
-                       "imagination.steps_per_batch=60", "imagination.horizon.start=3",
-                       "imagination.horizon.end=3", "imagination.stopping.max_updates=2",
-                       "imagination.stopping.check_every=2", "imagination.stopping.check_starts=4",
-                       "imagination.stopping.check_horizon=3", f"hydra.run.dir={tmp_path}")
+    result = run_train(*TINY, *PCE_TINY, "world_model.model.lags=1", "world_model.model.order=1",
+                       "imagination.disagreement_cut=1.0", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()
     assert "model/fresh_error" in text and "imagined/cut_share" in text

@@ -26,6 +26,16 @@ def run_train(*overrides: str) -> subprocess.CompletedProcess:
                           text=True, timeout=300, check=False)
 
 
+def assert_same_training_state(a: dict, b: dict, world_model: bool = False) -> None:
+    """Two checkpoints hold the same actor and critic (and world model) weights, tensor for tensor:
+    what a straight run and a resumed one must agree on."""
+    for name in ("actor", "critic"):
+        for key, value in a["learner"][name].items():
+            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    for key, value in (a["world_model"] if world_model else {}).items():
+        assert torch.equal(value, b["world_model"][key]), f"world model {key} differs after resume"
+
+
 def run_train_with(patch: str, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
     """train.py with ``patch`` (Python source) run first: to make the updater fail on purpose."""
     script = "\n".join(["import runpy, sys", patch, f"sys.argv = ['train.py', *{list(overrides)!r}]",
@@ -84,9 +94,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
     a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
     b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 4
-    for name in ("actor", "critic"):
-        for key, value in a["learner"][name].items():
-            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    assert_same_training_state(a, b)
     torch.testing.assert_close(a["policy"]["observation_loc"], b["policy"]["observation_loc"], rtol=0, atol=0)
     # The run ends with a saved policy that acts on a plain WalkerEnv observation.
     loaded = load_policy(tmp_path / "straight" / "checkpoint.pt")
@@ -120,9 +128,7 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 2
     assert (a["observation_dim"], a["action_dim"]) == (28, 29)  # F features per token, L token slots
-    for name in ("actor", "critic"):
-        for key, value in a["learner"][name].items():
-            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
+    assert_same_training_state(a, b)
     assert torch.equal(a["policy"]["observation_loc"], b["policy"]["observation_loc"])
     assert a["best_evaluation"] == b["best_evaluation"]
     # Periodic evaluations: the usual eval/ columns over every (morphology, design) cell, each epoch.
@@ -298,11 +304,7 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
     b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 3
-    for name in ("actor", "critic"):
-        for key, value in a["learner"][name].items():
-            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
-    for key, value in a["world_model"].items():
-        assert torch.equal(value, b["world_model"][key]), f"world model {key} differs after resume"
+    assert_same_training_state(a, b, world_model=True)
     assert a["collector"] == b["collector"] == {"epoch": 3, "real_env_steps": 60}
     with (tmp_path / "straight" / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
@@ -339,11 +341,7 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
     a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 2
     assert a["config"]["world_model"]["model"]["_target_"] == "unipolicy_rl.world_models.TokenEnsemble"
-    for name in ("actor", "critic"):
-        for key, value in a["learner"][name].items():
-            assert torch.equal(value, b["learner"][name][key]), f"{name}.{key} differs after resume"
-    for key, value in a["world_model"].items():
-        assert torch.equal(value, b["world_model"][key]), f"world model {key} differs after resume"
+    assert_same_training_state(a, b, world_model=True)
     with (tmp_path / "a" / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
     real = [row for row in rows if row["imagined"] == "0.0"]
