@@ -15,6 +15,10 @@ command goes into the run's ``commands.txt`` beside the commit it ran, its outpu
 saving a checkpoint the next queue resumes from.
 
 The runs are niced (``--nice``) so that work in the foreground keeps the cores it asks for.
+
+``--archive DEST`` copies each run's record (config, metrics, commands; not its checkpoint) to
+``DEST/<entry>/seed<k>`` as it exits and every ``--archive-every`` seconds while it runs
+(:func:`~unipolicy_rl.report.runs.archive_run`), so a study cut with its machine keeps what its runs had measured.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from pathlib import Path
 
 import torch
 import yaml
+
+from unipolicy_rl.report.runs import ReportError, archive_run
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
@@ -94,8 +100,10 @@ def plan_runs(plan: dict, entries: list[str], seeds: list[int], runs: Path) -> l
 class Queue:
     """At most ``jobs`` runs at once; a stop request is passed on to the running ones."""
 
-    def __init__(self, code: Path, commit: str, jobs: int, nice: int) -> None:
+    def __init__(self, code: Path, commit: str, jobs: int, nice: int, archive: Path | None = None,
+                 archive_every: float = 600.0) -> None:
         self.code, self.commit, self.jobs, self.nice = code, commit, jobs, nice
+        self.archive, self.archive_every, self.archived_at = archive, archive_every, time.monotonic()
         self.running: dict[subprocess.Popen, Run] = {}
         self.stopping = False
         for signum in (signal.SIGTERM, signal.SIGINT):
@@ -133,6 +141,19 @@ class Queue:
                 stamp = datetime.datetime.now().isoformat(timespec="seconds")
                 print(f"{stamp} {run.entry} seed {run.seed} exited with {code} (log: {run.folder / 'train.log'})",
                       flush=True)
+                self._archive(run)
+        if self.running and time.monotonic() - self.archived_at >= self.archive_every:
+            self.archived_at = time.monotonic()
+            for run in self.running.values():
+                self._archive(run)
+
+    def _archive(self, run: Run) -> None:
+        if self.archive is None:
+            return
+        try:
+            archive_run(run.folder, self.archive / run.entry / f"seed{run.seed}")
+        except (ReportError, OSError) as error:  # a run with no epoch yet, a full disk: the queue goes on
+            print(f"queue: not archived: {error}", flush=True)
 
     def drain(self) -> None:
         while self.running:
@@ -149,6 +170,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plan", type=Path, default=PLAN, help=f"entries and budgets ({PLAN.name})")
     parser.add_argument("--jobs", type=int, default=2, help="runs at once (2: one per core here)")
     parser.add_argument("--nice", type=int, default=10, help="niceness of the runs (10)")
+    parser.add_argument("--archive", type=Path, default=None,
+                        help="copy each run's record here (<archive>/<entry>/seed<k>), e.g. docs/league/runs")
+    parser.add_argument("--archive-every", type=float, default=600.0,
+                        help="seconds between copies of the running runs' records (600)")
     parser.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     args = parser.parse_args(argv)
     if args.jobs < 1:
@@ -159,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--code {code} holds no train.py")
     commit = frozen_commit(code)
     runs = plan_runs(yaml.safe_load(args.plan.read_text()), args.entries.split(","), args.seeds, args.runs)
-    queue = Queue(code, commit, args.jobs, args.nice)
+    archive = args.archive.resolve() if args.archive is not None else None
+    queue = Queue(code, commit, args.jobs, args.nice, archive, args.archive_every)
     print(f"queue: {len(runs)} run(s) of commit {commit} from {code}, {args.jobs} at a time", flush=True)
     for run in runs:
         if queue.stopping:

@@ -305,3 +305,27 @@ def test_a_run_still_going_is_counted_apart_from_one_that_finished_without_the_l
     table = league.format_league(league.make_entries(se, resamples=100))
     assert "2/3 (1 unfinished)" in table
     assert "unfinished" in league.format_runs(se).splitlines()[1]
+
+
+def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep, tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("league_archive", ROOT / "benchmarks" / "league_archive.py")
+    archive = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(archive)
+    runs = tmp_path / "runs"
+    for (entry, kind, seed), (segments, last) in RUNS.items():
+        path = write_run(runs, entry, kind, seed, segments, last)
+        (path / "checkpoint.pt").write_bytes(b"weights")
+        (path / "evaluation").mkdir()
+        (path / "evaluation" / "designs.csv").write_text("length,density,displacement\n0.15,0.4,3.0\n")
+    (runs / "started_seed9" / ".hydra").mkdir(parents=True)  # never finished an epoch: nothing to keep
+    (runs / "started_seed9" / "checkpoint.pt").write_bytes(b"weights")
+    assert archive.main([str(runs), str(tmp_path / "kept")]) == 0
+    assert f"archived {len(RUNS)} of {len(RUNS) + 1} runs" in capsys.readouterr().out
+    kept = tmp_path / "kept" / "se-trpo_seed0"
+    assert sorted(str(path.relative_to(kept)) for path in kept.rglob("*") if path.is_file()) == [
+        ".hydra/config.yaml", ".hydra/hydra.yaml", "evaluation/designs.csv", "metrics.csv"]
+    for entry, _, seed in RUNS:
+        name = f"{entry}_seed{seed}"
+        original = league.run_result(load_run(runs / name, name))
+        copy = league.run_result(load_run(tmp_path / "kept" / name, name))
+        assert steps_at(copy) == steps_at(original) and copy.finished == original.finished

@@ -14,6 +14,7 @@ import itertools
 import math
 import os
 import re
+import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -35,6 +36,10 @@ CHECKPOINT = "checkpoint.pt"
 DESIGNS = Path("evaluation") / "designs.csv"
 SWEEP_FILE = "multirun.yaml"  # Hydra writes it at the root of every multirun
 RUN_MARKERS = (CONFIG, Path(METRICS), Path(CHECKPOINT))
+# A run's record: the small files the reports read (not its checkpoint or buffer), what an archive keeps.
+COMMANDS = "commands.txt"  # benchmarks/league_queue.py's log of every command a run was given
+RECORD = (CONFIG, HYDRA_CONFIG, OVERRIDES, Path(METRICS), Path(COMMANDS))
+EVALUATION_TABLES = "evaluation/*.csv"
 # A run whose metrics.csv changed this recently may still be training.
 STILL_RUNNING_SECONDS = 600
 
@@ -144,6 +149,29 @@ def run_names(paths: Sequence[Path], roots: Sequence[Path]) -> list[str]:
     if len(roots) == 1 and is_run_dir(roots[0]):
         base = base.parent
     return [str(path.resolve().relative_to(base)) if path.resolve() != base else path.name for path in paths]
+
+
+# -- keeping a run's record ----------------------------------------------------------
+def record_files(run: Path) -> list[Path]:
+    """The run's small files the league reads, relative to the run folder (those that exist)."""
+    files = [name for name in RECORD if (run / name).is_file()]
+    return files + sorted(path.relative_to(run) for path in run.glob(EVALUATION_TABLES))
+
+
+def archive_run(run: Path, destination: Path) -> list[Path]:
+    """Copies ``run``'s record into ``destination`` (created), each file written whole before it
+    replaces the old copy; returns the files copied, relative to the run folder."""
+    files = record_files(run)
+    if Path(METRICS) not in files:
+        raise ReportError(f"{run}: no {METRICS}, so nothing to archive (it never finished an epoch)")
+    for name in files:
+        target = destination / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        partial = target.with_name(target.name + ".partial")
+        shutil.copyfile(run / name, partial)
+        partial.replace(target)
+    return files
+
 
 
 # -- reading one run -------------------------------------------------------------------
