@@ -17,6 +17,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.world_models.trainer import EPISODE_START
 
 COLLECTED_IN = "collected_in"  # the real epoch a buffered transition came from (1 = the first)
@@ -91,7 +92,7 @@ class TransitionBuffer:
         return self.buffer[: len(self.buffer)]
 
     def state_dict(self) -> dict:
-        return self.buffer.state_dict()
+        return compact_state(self.buffer)
 
     def load_state_dict(self, state: dict) -> None:
-        self.buffer.load_state_dict(state)
+        load_compact_state(self.buffer, state)

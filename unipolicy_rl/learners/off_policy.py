@@ -33,6 +33,7 @@ from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs.transforms import ObservationNorm
 from torchrl.objectives import CrossQLoss, LossModule, REDQLoss, SACLoss, SoftUpdate
 
+from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.collectors.real import is_imagined
 from unipolicy_rl.learners.base import observation_probe, policy_state
 from unipolicy_rl.networks import make_q_network
@@ -290,8 +291,8 @@ class OffPolicyLearner:
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "alpha_optimizer": self.alpha_optimizer.state_dict(),
             "observation_statistics": self.statistics.state_dict(),
-            "buffer": self.buffer.state_dict(),
-            **({"model_buffer": self.model_buffer.state_dict()} if self.model_buffer is not None else {}),
+            "buffer": compact_state(self.buffer),
+            **({"model_buffer": compact_state(self.model_buffer)} if self.model_buffer is not None else {}),
             "gradient_steps": self.gradient_steps,
             "owed_steps": self.owed_steps,
         }
@@ -303,8 +304,8 @@ class OffPolicyLearner:
         self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
         self.statistics.load_state_dict(state["observation_statistics"])
         self.statistics.copy_to(self.normalizer)
-        self.buffer.load_state_dict(state["buffer"])
+        load_compact_state(self.buffer, state["buffer"])
         if self.model_buffer is not None:
-            self.model_buffer.load_state_dict(state["model_buffer"])
+            load_compact_state(self.model_buffer, state["model_buffer"])
         self.gradient_steps = int(state["gradient_steps"])
         self.owed_steps = float(state["owed_steps"])
