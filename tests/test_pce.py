@@ -330,6 +330,34 @@ def test_the_members_normal_equations_are_the_weighted_sums_over_whole_episode_g
     torch.testing.assert_close(square, w @ y.pow(2), rtol=1e-9, atol=0)
 
 
+def test_a_singular_gram_matrix_is_fitted_with_a_larger_ridge_and_the_ridge_used_is_reported():
+    """Two inputs that are one (as the velocities of rigidly joined links nearly are): without a
+    ridge their normal equations are singular; the fit raises the ridge until every member factors."""
+    from test_world_models import TOY, one_step_r2, toy_transitions
+
+    from unipolicy_rl.world_models import ClosedFormTrainer, PCEDynamics
+
+    def duplicated(n: int, seed: int):
+        data = toy_transitions(n, seed)
+        for key in ("state", "next_state"):
+            data[key][:, 5] = data[key][:, 4]
+        return data
+
+    def fitted(ridge: float):
+        model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                            interactions="all", members=3, ridge=ridge)
+        return model, ClosedFormTrainer().fit(model, duplicated(4000, 0), torch.Generator().manual_seed(0))
+
+    model, report = fitted(0.0)
+    assert 0 < report.extras["ridge"] <= 1e-2
+    reference, _ = fitted(1e-3)  # a ridge that factors at once: the retried fit is as good
+    held_out = duplicated(1000, 1)
+    assert one_step_r2(model, held_out) >= one_step_r2(reference, held_out) - 0.01 >= 0.8
+    plain = ClosedFormTrainer().fit(PCEDynamics(TOY, action_dim=2, members=3), toy_transitions(4000, 0),
+                                    torch.Generator().manual_seed(0))
+    assert plain.extras["ridge"] == 1e-6  # factorable at the configured ridge: unchanged
+
+
 def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_positions_move_on():
     from test_world_models import TOY, toy_transitions
 

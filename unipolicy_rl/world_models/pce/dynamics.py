@@ -33,6 +33,10 @@ BOOTSTRAP_GROUPS = 256
 
 INTERACTIONS = ("all", "controls")
 
+#: The ridge per unit of sample weight a fit retries with when a member's normal equations cannot
+#: be factored: from this (or tenfold the configured one), tenfold at a time, up to the largest.
+MIN_RETRY_RIDGE, MAX_RIDGE = 1e-8, 1e-2
+
 
 @dataclass(frozen=True)
 class EpisodeBootstrap:
@@ -100,7 +104,8 @@ class PCEDynamics(nn.Module):
 
     Fit (:meth:`fit`, called by :class:`~unipolicy_rl.world_models.ClosedFormTrainer` with its
     train/validation split): the input ranges are taken from the training part, the normal
-    equations of every member are accumulated over row chunks and solved by Cholesky (float64),
+    equations of every member are accumulated over row chunks and solved by Cholesky (float64;
+    the ridge raised where a member cannot be factored, :meth:`solve_with_ridge`),
     and each member's validation error is the mean over outputs of its MSE divided by the
     output's variance (standardised MSE, as the ensemble's trainer reports); an epoch count of 1
     is reported. The data decide how much of the basis is fitted: the first ``min(terms, n_train
@@ -281,13 +286,7 @@ class PCEDynamics(nn.Module):
         bootstrap = self.episode_bootstrap(transitions, train, generator)
         gram, moment, square = self.normal_equations(inputs[train], targets[train], bootstrap, active)
         samples, total = bootstrap.samples(), bootstrap.total()
-        # The ridge scales with each member's weight total, so its pull does not fade as the buffer grows.
-        ridge = self.ridge * total.reshape(-1, 1, 1)
-        gram = gram + ridge * torch.eye(terms, device=self.device)
-        coefficients, diagnostics = solve_normal_equations(gram, moment, square, samples)
-        if diagnostics.fallbacks:
-            raise FloatingPointError(f"the PCE's normal equations could not be factored: {diagnostics.summary()}; "
-                                     f"raise world_model.model.ridge or lower the order")
+        coefficients, diagnostics, ridge = self.solve_with_ridge(gram, moment, square, samples, total)
         self.coefficients.zero_()
         self.coefficients[:, active] = coefficients.float()
         self.fitted_terms.fill_(terms)
@@ -296,7 +295,7 @@ class PCEDynamics(nn.Module):
         scale = targets[train].var(0, correction=0).clamp_min(1e-12)
         train_error = float((diagnostics.residual_rms[0].pow(2) / scale).mean())
         return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
-                         extras={"solve_fallbacks": 0})
+                         extras={"solve_fallbacks": 0, "ridge": ridge})
 
     # -- what the coefficients tell -------------------------------------------------------
     def input_names(self, body_names: tuple[str, ...] | None = None) -> list[str]:
@@ -370,9 +369,10 @@ class PCEDynamics(nn.Module):
         sums weighted by its draws: each group's ``X_g^T X_g`` is computed once, for every member
         at the cost of one (a per-row bootstrap would need one product per member). The
         products run in float32 over one group's rows (a few hundred at most once the buffer
-        is large) and are summed in float64 across groups: near the data's limit (2 samples
-        per term, a bootstrap member sees about 63% of them) float32 sums over the whole buffer
-        would lose the Gram matrix's positive definiteness."""
+        is large) and each is added to the members' sums in float64: float32 sums over many
+        groups lose the positive definiteness of a Gram matrix whose inputs are nearly
+        collinear (a walking policy's buffer of 25,000 rows did), and what rounding is left
+        :meth:`solve_with_ridge` absorbs."""
         terms, outputs = len(active), targets.shape[-1]
         order = torch.argsort(bootstrap.group, stable=True)
         inputs, targets = inputs[order], targets[order]
@@ -389,22 +389,44 @@ class PCEDynamics(nn.Module):
             # Terms first ([terms, rows]), as the basis builds it: selecting terms copies whole rows.
             xt = self.design_matrix(inputs[start:ends[last]]).transpose(-1, -2)[active].float()
             y = targets[start:ends[last]].float()
-            draws = bootstrap.draws[:, first:last + 1].float()  # [members, groups of the chunk]
-            chunk_gram = torch.zeros(self.members, terms * terms, device=self.device)
-            chunk_moment = torch.zeros(self.members, terms * outputs, device=self.device)
+            draws = bootstrap.draws[:, first:last + 1].double()  # [members, groups of the chunk]
             a = 0
             for index, end in enumerate(ends[first:last + 1]):
                 b = end - start
                 x, part = xt[:, a:b], y[a:b]
                 weight = draws[:, index:index + 1]
-                chunk_gram.addmm_(weight, (x @ x.T).view(1, -1))  # every member's share of the group's sums
-                chunk_moment.addmm_(weight, (x @ part).view(1, -1))
-                square += weight.double() * part.double().pow(2).sum(0)
+                # Every member's share of the group's sums, added in float64: float32 sums over many
+                # groups break the positive definiteness of a Gram matrix whose features are
+                # nearly collinear (the velocities of rigidly joined links).
+                gram.view(self.members, -1).addmm_(weight, (x @ x.T).view(1, -1).double())
+                moment.view(self.members, -1).addmm_(weight, (x @ part).view(1, -1).double())
+                square += weight * part.double().pow(2).sum(0)
                 a = b
-            gram += chunk_gram.view(-1, terms, terms).double()
-            moment += chunk_moment.view(-1, terms, outputs).double()
             first = last + 1
         return gram, moment, square
+
+    def solve_with_ridge(self, gram: torch.Tensor, moment: torch.Tensor, square: torch.Tensor, samples: torch.Tensor,
+                         total: torch.Tensor):
+        """(coefficients, diagnostics, the ridge per unit weight used): the normal equations solved by
+        Cholesky with ``ridge`` times each member's weight total on the diagonal (so its pull does
+        not fade as the buffer grows), raised tenfold at a time, up to :data:`MAX_RIDGE`, while any
+        member cannot be factored.
+
+        The robot's features are nearly collinear (the velocities of rigidly joined links are
+        linear in a few rates), so a Gram matrix can have eigenvalues at the level of its
+        rounding error; which ridge first makes it factorable depends on the data, not on a
+        setting a user could know in advance (``model/ridge`` logs the one used)."""
+        eye = torch.eye(gram.shape[-1], device=self.device, dtype=gram.dtype)
+        ridge = self.ridge
+        while True:
+            coefficients, diagnostics = solve_normal_equations(gram + ridge * total.reshape(-1, 1, 1) * eye, moment,
+                                                               square, samples)
+            if not diagnostics.fallbacks:
+                return coefficients, diagnostics, ridge
+            if ridge >= MAX_RIDGE:
+                raise FloatingPointError(f"the PCE's normal equations could not be factored even with a ridge of "
+                                         f"{ridge:g} per sample: {diagnostics.summary()}; lower the order")
+            ridge = min(MAX_RIDGE, max(10 * ridge, MIN_RETRY_RIDGE))
 
     def validation_error(self, inputs: torch.Tensor, targets: torch.Tensor,
                          train_targets: torch.Tensor) -> torch.Tensor:
