@@ -165,6 +165,9 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "robot.sampling=random"], "robot.sampling must be one of"),
         ([*GRAMMAR, "policy=token_mlp", "robot.training_morphologies=4"],
          r"robot.training_morphologies must be null or an integer in \[1, 3\]"),
+        ([*GRAMMAR, "policy=token_mlp", "robot.morphologies=held_out", "robot.specialist=2"],
+         r"robot.specialist must be null or an index in \[0, 1\] of the 2 morphologies of "
+         "robot.morphologies=held_out, got 2"),
         (["+robot.kind=snake"], "robot.kind must be one of"),
         ([*GRAMMAR, "policy=token_transformer", "policy.critic=attention"],
          r"policy.critic must be one of \('transformer', 'pooled', 'padded_mlp'\), got 'attention'"),
@@ -192,3 +195,15 @@ def test_a_model_based_grammar_run_takes_the_ensemble_conditioned_on_the_morphol
         assert cfg.world_model.model_state == "tokens"
     # The vertebrate's world_model=moe stays the flat ensemble.
     assert composed(["source=moe"]).world_model.model._target_ == "unipolicy_rl.world_models.GaussianEnsemble"
+
+
+def test_a_specialist_run_trains_and_evaluates_on_one_morphology_of_its_side():
+    from unipolicy_rl.envs.config import grammar_morphologies, morphology_env_kwargs
+
+    cfg = composed([*GRAMMAR, "policy=token_mlp", "robot.morphologies=held_out", "robot.specialist=1",
+                    "evaluation.morphologies=held_out"])
+    validate_config(cfg)
+    split, _ = grammar_morphologies(cfg, "all")
+    assert morphology_env_kwargs(cfg)["morphologies"] == (split.held_out[1],)
+    assert morphology_env_kwargs(cfg, cfg.evaluation.morphologies)["morphologies"] == (split.held_out[1],)
+    assert morphology_env_kwargs(cfg, "train")["morphologies"] == split.train  # another side stays whole

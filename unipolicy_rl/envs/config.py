@@ -48,7 +48,10 @@ def grammar_morphologies(cfg: DictConfig, side: str | None = None) -> tuple[Morp
     """The config's split and one side of it: ``side``, by default ``robot.morphologies`` (the
     side the training env draws from). The training side is cut to its first
     ``robot.training_morphologies`` when that is set, wherever it is used (training, or the
-    evaluation of the morphologies trained on)."""
+    evaluation of the morphologies trained on). ``robot.specialist: i`` cuts the side the
+    training env draws from to its morphology ``i`` alone, there and in an evaluation of that
+    side: a specialist run, trained and evaluated on one robot of the split (the baseline a
+    policy of many robots is measured against; ``benchmarks/morphology_table.py``)."""
     side = cfg.robot.morphologies if side is None else side
     if side not in GRAMMAR_SIDES:
         raise ValueError(f"robot.morphologies must be one of {GRAMMAR_SIDES}, got {side!r}")
@@ -60,6 +63,13 @@ def grammar_morphologies(cfg: DictConfig, side: str | None = None) -> tuple[Morp
                          f"split's training side), got {count!r}")
     train = split.train if count is None else split.train[:count]
     chosen = {"train": train, "held_out": split.held_out, "all": train + split.held_out}[side]
+    specialist = cfg.robot.get("specialist", None)
+    if specialist is not None and side == cfg.robot.morphologies:
+        if not (isinstance(specialist, int) and not isinstance(specialist, bool) and 0 <= specialist < len(chosen)):
+            raise ValueError(f"robot.specialist must be null or an index in [0, {len(chosen) - 1}] of the "
+                             f"{len(chosen)} morphologies of robot.morphologies={cfg.robot.morphologies}, "
+                             f"got {specialist!r}")
+        chosen = (chosen[specialist],)
     return split, chosen
 
 

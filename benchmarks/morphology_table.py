@@ -1,0 +1,128 @@
+"""One policy for the grammar's robots against a specialist per robot: the table and figure of issue 23.
+
+    python train.py robot=grammar policy=token_mlp robot.morphologies=train robot.specialist=0 \\
+        evaluation.morphologies=train epochs=300 seed=0 hydra.run.dir=runs/specialists/train0
+    python train.py robot=grammar policy=token_mlp robot.morphologies=held_out robot.specialist=0 \\
+        evaluation.morphologies=held_out epochs=300 seed=0 hydra.run.dir=runs/specialists/held_out0
+    python train.py robot=grammar policy=token_transformer robot.training_morphologies=8 \\
+        evaluation.morphologies=all epochs=2400 seed=0 hydra.run.dir=runs/universal/transformer8
+    python benchmarks/morphology_table.py runs/specialists runs/universal [--out outputs/morphology_table]
+
+Reads every grammar run under the roots (``unipolicy_rl.report.morphologies``): specialists are
+the runs with ``robot.specialist`` set, the others universal entries (policy x number of
+training morphologies). Prints, per entry, the median of the universal policy's grid mean
+displacement over the specialist's on the morphologies it trained on and on the held-out ones
+(zero-shot), and how many of its training morphologies it walks (grid mean >= 1 m); then one
+line per entry and morphology. Writes ``morphology_table.csv`` and ``morphologies.png``: each
+morphology rendered in PyBullet (at the mean design), titled with its side and every entry's
+and its specialist's grid mean (``--no-pictures`` skips the renders).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pybullet
+
+from unipolicy_rl.report.morphologies import compare, format_table, is_grammar_run, summarize
+from unipolicy_rl.report.runs import ReportError, discover, load_run, run_names
+from unipolicy_rl.robots import load_robot
+from unipolicy_rl.robots.grammar import describe
+from unipolicy_rl.robots.kinematics import rest_height
+
+DEFAULT_OUT = Path("outputs") / "morphology_table"
+
+
+def render(derivation: str, width: int = 240, height: int = 180) -> np.ndarray:
+    """The morphology at the mean design, standing on the ground, seen from the front left (RGB)."""
+    description = describe(derivation.split())
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client)
+        pybullet.createMultiBody(0.0, plane, physicsClientId=client)
+        body = load_robot(client, description, (0.0, 0.0, rest_height(description)), math.pi, 1.5,
+                          visuals=True).body_id
+        boxes = [pybullet.getAABB(body, link, physicsClientId=client)
+                 for link in range(-1, pybullet.getNumJoints(body, physicsClientId=client))]
+        low, high = np.min([box[0] for box in boxes], 0), np.max([box[1] for box in boxes], 0)
+        # The whole robot in view, whatever its size: the camera backs off with its extent.
+        distance = 0.1 + 0.75 * float(np.linalg.norm(high - low))
+        view = pybullet.computeViewMatrixFromYawPitchRoll(tuple((low + high) / 2), distance, 35.0, -30.0, 0.0, 2,
+                                                          physicsClientId=client)
+        projection = pybullet.computeProjectionMatrixFOV(50.0, width / height, 0.05, 10.0, physicsClientId=client)
+        _, _, rgba, _, _ = pybullet.getCameraImage(width, height, view, projection,
+                                                   renderer=pybullet.ER_TINY_RENDERER, physicsClientId=client)
+    finally:
+        pybullet.disconnect(client)
+    return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3]
+
+
+def draw(comparisons, path: Path) -> None:
+    """A grid of renders, one per morphology, titled with each entry's and the specialist's grid mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by_morphology: dict[str, list] = {}
+    for row in comparisons:
+        by_morphology.setdefault(row.derivation, []).append(row)
+    order = sorted(by_morphology, key=lambda d: (by_morphology[d][0].side, by_morphology[d][0].links, d))
+    columns = min(6, len(order))
+    rows = math.ceil(len(order) / columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.0 * rows), squeeze=False)
+    for axis in axes.flat:
+        axis.axis("off")
+    for axis, derivation in zip(axes.flat, order, strict=False):
+        entries = by_morphology[derivation]
+        axis.imshow(render(derivation))
+        specialist = entries[0].specialist
+        lines = [f"{entries[0].side}, {entries[0].links} links",
+                 "specialist " + ("-" if specialist is None else f"{specialist:.2f} m")]
+        lines += [f"{row.entry.split(',')[0]} x{row.entry.split(',')[1].split()[0]}: {row.universal:.2f} m"
+                  for row in entries]
+        axis.set_title("\n".join(lines), fontsize=7)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("roots", nargs="+", type=Path, help="folders holding specialist and universal grammar runs")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"where the CSV and figure go ({DEFAULT_OUT})")
+    parser.add_argument("--no-pictures", action="store_true", help="skip the PyBullet renders")
+    args = parser.parse_args(argv)
+    try:
+        paths, _ = discover(args.roots, exclude=[args.out])
+    except ReportError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    runs = [load_run(path, name) for path, name in zip(paths, run_names(paths, args.roots), strict=True)]
+    runs = [run for run in runs if is_grammar_run(run)]
+    comparisons = compare(runs)
+    if not comparisons:
+        print("error: no universal grammar run with a final evaluation (evaluation/morphologies.csv) under "
+              f"{', '.join(map(str, args.roots))}", file=sys.stderr)
+        return 1
+    print(format_table(comparisons, summarize(comparisons)))
+    args.out.mkdir(parents=True, exist_ok=True)
+    with (args.out / "morphology_table.csv").open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=[*asdict(comparisons[0]), "ratio"])
+        writer.writeheader()
+        writer.writerows({**asdict(row), "ratio": row.ratio} for row in comparisons)
+    if not args.no_pictures:
+        draw(comparisons, args.out / "morphologies.png")
+        print(f"wrote {args.out / 'morphologies.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,110 @@
+"""The specialist/universal table (issue 23) computed right on hand-made run folders."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from unipolicy_rl.report import morphologies as table
+from unipolicy_rl.report.runs import load_run
+
+ROOT = Path(__file__).resolve().parent.parent
+SIDES = {"a": table.TRAINED, "b": table.TRAINED, "c": table.UNTRAINED, "x": table.HELD_OUT, "y": table.HELD_OUT}
+
+
+def write_run(root: Path, name: str, policy: str, scores: dict[str, float], specialist: int | None = None,
+              training_morphologies: int | None = None) -> Path:
+    """A grammar run folder: its config and its final evaluation's morphologies.csv."""
+    path = root / name
+    (path / ".hydra").mkdir(parents=True)
+    (path / "evaluation").mkdir()
+    config = {"run_name": "se-trpo", "seed": 0, "source": {"name": "se"}, "policy": {"name": policy},
+              "robot": {"kind": "grammar", "specialist": specialist, "training_morphologies": training_morphologies}}
+    OmegaConf.save(OmegaConf.create(config), path / ".hydra" / "config.yaml")
+    (path / "metrics.csv").write_text("epoch\n1\n")
+    with (path / table.MORPHOLOGIES_CSV).open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=["morphology", "links", "mean_forward_displacement",
+                                                  "min_forward_displacement", "derivation"])
+        writer.writeheader()
+        for index, (derivation, mean) in enumerate(scores.items()):
+            writer.writerow({"morphology": index, "links": 7 + index, "mean_forward_displacement": mean,
+                             "min_forward_displacement": mean / 2, "derivation": derivation})
+    return path
+
+
+@pytest.fixture()
+def runs(tmp_path):
+    paths = [
+        write_run(tmp_path, "spec_a0", "token_mlp", {"a": 4.0}, specialist=0),
+        write_run(tmp_path, "spec_a1", "token_mlp", {"a": 2.0}, specialist=0),  # two seeds: the median is 3.0
+        write_run(tmp_path, "spec_b", "token_mlp", {"b": 2.0}, specialist=1),
+        write_run(tmp_path, "spec_x", "token_mlp", {"x": 4.0}, specialist=0),
+        write_run(tmp_path, "spec_y", "token_mlp", {"y": -0.5}, specialist=1),  # goes backwards: no ratio
+        write_run(tmp_path, "transformer", "token_transformer", {"a": 3.0, "b": 0.5, "c": 9.0, "x": 3.0, "y": 1.0},
+                  training_morphologies=2),
+        write_run(tmp_path, "mlp", "token_mlp", {"a": 1.5, "b": 2.0, "x": 1.0, "y": 0.0, "z": 5.0},
+                  training_morphologies=2),
+    ]
+    return [load_run(path, path.name) for path in paths]
+
+
+def test_each_morphology_is_compared_with_its_specialists_median_by_derivation(runs):
+    rows = {(row.entry, row.derivation): row for row in table.compare(runs, sides_of=lambda run: SIDES)}
+    transformer = "token_transformer, 2 morphologies"
+    assert rows[transformer, "a"].specialist == 3.0 and rows[transformer, "a"].ratio == 1.0
+    assert rows[transformer, "b"].ratio == 0.25 and rows[transformer, "x"].ratio == 0.75
+    assert math.isnan(rows[transformer, "y"].ratio)  # its specialist went backwards
+    assert rows[transformer, "c"].side == table.UNTRAINED and rows[transformer, "c"].specialist is None
+    assert rows["token_mlp, 2 morphologies", "z"].side == table.UNTRAINED  # not in the split at all
+
+
+def test_the_summary_takes_medians_over_trained_and_held_out_morphologies_and_counts_walkers(runs):
+    comparisons = table.compare(runs, sides_of=lambda run: SIDES)
+    summary = {row.entry: row for row in table.summarize(comparisons)}
+    transformer = summary["token_transformer, 2 morphologies"]
+    assert transformer.trained_ratio == pytest.approx(0.625)  # median of 1.0 and 0.25
+    assert (transformer.held_out_ratio, transformer.held_out_compared) == (0.75, 1)
+    assert (transformer.trained_walking, transformer.trained) == (1, 2)  # b at 0.5 m does not walk
+    assert transformer.held_out_mean == 2.0
+    mlp = summary["token_mlp, 2 morphologies"]
+    assert mlp.trained_ratio == pytest.approx((0.5 + 1.0) / 2) and mlp.trained_walking == 2
+    text = table.format_table(comparisons, table.summarize(comparisons))
+    assert "| token_transformer, 2 morphologies | 62% (2 compared) | 1/2 | 75% (1 compared) | 2.00 m |" in text
+
+
+def test_an_evaluation_run_again_counts_once_with_its_last_row(tmp_path):
+    path = write_run(tmp_path, "spec", "token_mlp", {"a": 1.0}, specialist=0)
+    with (path / table.MORPHOLOGIES_CSV).open("a", newline="") as file:
+        file.write("0,7,2.5,1.0,a\n")
+    scores = table.final_scores(load_run(path, "spec"))
+    assert [(score.derivation, score.mean_displacement) for score in scores] == [("a", 2.5)]
+
+
+def test_the_benchmark_prints_the_table_from_real_split_sides(tmp_path, capsys):
+    """Through the split itself: a universal run of the config's split, its derivations read from it."""
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.envs.config import grammar_morphologies
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["robot=grammar", "policy=token_mlp", "robot.split.train_size=3",
+                                           "robot.split.held_out_size=2", "robot.training_morphologies=2"])
+    split, _ = grammar_morphologies(cfg, "all")
+    names = [" ".join(morphology.derivation()) for morphology in (*split.train, *split.held_out)]
+    universal = write_run(tmp_path, "universal", "token_mlp", dict.fromkeys(names, 2.0), training_morphologies=2)
+    cfg.run_name = "se-trpo"  # what Hydra's runtime resolves in a run
+    OmegaConf.save(cfg, universal / ".hydra" / "config.yaml")
+    write_run(tmp_path, "specialist", "token_mlp", {names[3]: 4.0}, specialist=0)
+    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "| token_mlp, 2 morphologies | - (0 compared) | 2/2 | 50% (1 compared) | 2.00 m |" in printed
+    assert printed.count("train side, not trained on") == 1  # the third training morphology
+    assert (tmp_path / "out" / "morphologies.png").stat().st_size > 0
