@@ -19,6 +19,9 @@ The runs are niced (``--nice``) so that work in the foreground keeps the cores i
 ``--archive DEST`` copies each run's record (config, metrics, commands; not its checkpoint) to
 ``DEST/<entry>/seed<k>`` as it exits and every ``--archive-every`` seconds while it runs
 (:func:`~unipolicy_rl.report.runs.archive_run`), so a study cut with its machine keeps what its runs had measured.
+``--stop-after MINUTES`` stops the queue that long after it started, as SIGTERM would (runs end at
+their epoch's end with a checkpoint, and are archived): on a machine lent for a fixed time, the
+records are final before it goes.
 """
 
 from __future__ import annotations
@@ -101,8 +104,9 @@ class Queue:
     """At most ``jobs`` runs at once; a stop request is passed on to the running ones."""
 
     def __init__(self, code: Path, commit: str, jobs: int, nice: int, archive: Path | None = None,
-                 archive_every: float = 600.0) -> None:
+                 archive_every: float = 600.0, stop_after: float | None = None) -> None:
         self.code, self.commit, self.jobs, self.nice = code, commit, jobs, nice
+        self.stop_at = None if stop_after is None else time.monotonic() + stop_after
         self.archive, self.archive_every, self.archived_at = archive, archive_every, time.monotonic()
         self.running: dict[subprocess.Popen, Run] = {}
         self.stopping = False
@@ -129,11 +133,15 @@ class Queue:
         print(f"{stamp} started {run.entry} seed {run.seed}: {' '.join(command[1:])}", flush=True)
 
     def wait_for_slot(self) -> None:
+        self._reap()  # (also where --stop-after is noticed, before a start)
         while len(self.running) >= self.jobs:
-            self._reap()
             time.sleep(5)
+            self._reap()
 
     def _reap(self) -> None:
+        if self.stop_at is not None and time.monotonic() >= self.stop_at and not self.stopping:
+            print("queue: --stop-after reached", flush=True)
+            self._stop(signal.SIGTERM, None)
         for process, run in list(self.running.items()):
             code = process.poll()
             if code is not None:
@@ -174,10 +182,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="copy each run's record here (<archive>/<entry>/seed<k>), e.g. docs/league/runs")
     parser.add_argument("--archive-every", type=float, default=600.0,
                         help="seconds between copies of the running runs' records (600)")
+    parser.add_argument("--stop-after", type=float, default=None,
+                        help="minutes after which the queue stops its runs (at their epoch's end) and starts no more")
     parser.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
+    if args.stop_after is not None and not args.stop_after >= 0:
+        parser.error(f"--stop-after must be >= 0 minutes, got {args.stop_after}")
 
     code = args.code.resolve()
     if not (code / "train.py").is_file():
@@ -185,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     commit = frozen_commit(code)
     runs = plan_runs(yaml.safe_load(args.plan.read_text()), args.entries.split(","), args.seeds, args.runs)
     archive = args.archive.resolve() if args.archive is not None else None
-    queue = Queue(code, commit, args.jobs, args.nice, archive, args.archive_every)
+    queue = Queue(code, commit, args.jobs, args.nice, archive, args.archive_every,
+                  None if args.stop_after is None else 60 * args.stop_after)
     print(f"queue: {len(runs)} run(s) of commit {commit} from {code}, {args.jobs} at a time", flush=True)
     for run in runs:
         if queue.stopping:

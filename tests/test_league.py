@@ -8,6 +8,7 @@ import dataclasses
 import importlib.util
 import itertools
 import math
+import subprocess
 import sys
 from pathlib import Path
 
@@ -329,3 +330,18 @@ def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep
         original = league.run_result(load_run(runs / name, name))
         copy = league.run_result(load_run(tmp_path / "kept" / name, name))
         assert steps_at(copy) == steps_at(original) and copy.finished == original.finished
+
+
+def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):
+    queue = load_queue()
+    code = tmp_path / "code"
+    code.mkdir()
+    (code / "train.py").write_text("raise SystemExit('must not run')\n")
+    commit = ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c"]
+    for command in (["init", "-q"], ["add", "train.py"], commit):
+        subprocess.run(["git", *command], cwd=code, check=True)
+    assert queue.main(["--code", str(code), "--runs", str(tmp_path / "runs"), "--entries", "se-trpo", "--seeds", "0-1",
+                       "--stop-after", "0"]) == 0
+    printed = capsys.readouterr().out
+    assert "--stop-after reached" in printed and "started" not in printed
+    assert not (tmp_path / "runs").exists()
