@@ -395,9 +395,7 @@ class PCEDynamics(nn.Module):
                 b = end - start
                 x, part = xt[:, a:b], y[a:b]
                 weight = draws[:, index:index + 1]
-                # Every member's share of the group's sums, added in float64: float32 sums over many
-                # groups break the positive definiteness of a Gram matrix whose features are
-                # nearly collinear (the velocities of rigidly joined links).
+                # Every member's share of the group's sums, added in float64 (see the docstring).
                 gram.view(self.members, -1).addmm_(weight, (x @ x.T).view(1, -1).double())
                 moment.view(self.members, -1).addmm_(weight, (x @ part).view(1, -1).double())
                 square += weight * part.double().pow(2).sum(0)
