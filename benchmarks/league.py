@@ -37,7 +37,7 @@ from unipolicy_rl.report.league import (
     run_result,
     write_csv,
 )
-from unipolicy_rl.report.runs import ReportError, discover, load_run, run_names
+from unipolicy_rl.report.runs import ReportError, load_runs
 
 DEFAULT_OUT = Path("outputs") / "league"
 
@@ -52,19 +52,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     try:
-        paths, _ = discover(args.roots, exclude=[args.out])
+        runs = load_runs(args.roots, exclude=[args.out])
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
     results, left_out = [], []
-    for path, name in zip(paths, run_names(paths, args.roots), strict=True):
-        run = load_run(path, name)
+    for run in runs:
         if run.config is None or run.source is None:
-            left_out.append(f"{name}: {'; '.join(run.problems) or 'no config'}")
+            left_out.append(f"{run.name}: {'; '.join(run.problems) or 'no config'}")
             continue
         result = run_result(run)
         if not result.evaluations:
-            left_out.append(f"{name}: no periodic grid evaluation logged (yet, or evaluation.every_steps=0)")
+            left_out.append(f"{run.name}: no periodic grid evaluation logged (yet, or evaluation.every_steps=0)")
             continue
         results.append(result)
     for line in left_out:

@@ -31,7 +31,7 @@ import numpy as np
 import pybullet
 
 from unipolicy_rl.report.morphologies import compare, format_table, is_grammar_run, summarize
-from unipolicy_rl.report.runs import ReportError, discover, load_run, run_names
+from unipolicy_rl.report.runs import ReportError, load_runs
 from unipolicy_rl.robots import load_robot
 from unipolicy_rl.robots.grammar import describe
 from unipolicy_rl.robots.kinematics import rest_height
@@ -101,12 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-pictures", action="store_true", help="skip the PyBullet renders")
     args = parser.parse_args(argv)
     try:
-        paths, _ = discover(args.roots, exclude=[args.out])
+        runs = [run for run in load_runs(args.roots, exclude=[args.out]) if is_grammar_run(run)]
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
-    runs = [load_run(path, name) for path, name in zip(paths, run_names(paths, args.roots), strict=True)]
-    runs = [run for run in runs if is_grammar_run(run)]
     comparisons = compare(runs)
     if not comparisons:
         print("error: no universal grammar run with a final evaluation (evaluation/morphologies.csv) under "

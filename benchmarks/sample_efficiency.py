@@ -24,7 +24,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from unipolicy_rl.report.metrics import first_walking, median_to_walk
-from unipolicy_rl.report.runs import discover, load_run, run_names
+from unipolicy_rl.report.runs import load_runs
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -35,12 +35,10 @@ def main(argv: list[str] | None = None) -> dict:
                              "before runs were named so are grouped by source, e.g. se)")
     args = parser.parse_args(argv)
 
-    paths, _ = discover(args.roots)
     reached: dict[str, list[tuple[float, float]]] = defaultdict(list)
     runs_per_source: dict[str, int] = defaultdict(int)
     print(f"{'run':<40} {'source':<12} {'real steps to walk':>18} {'wall s':>8}")
-    for path, name in zip(paths, run_names(paths, args.roots), strict=True):
-        run = load_run(path, name)
+    for run in load_runs(args.roots):
         label = run.source or "?"
         if run.config and run.config.get("world_model") and "moe_thesis" in str(run.overrides) and \
                 "run_name" not in run.config:  # (a named run says moe_thesis itself)
@@ -48,10 +46,10 @@ def main(argv: list[str] | None = None) -> dict:
         runs_per_source[label] += 1
         walked = first_walking(run)
         if walked is None:
-            print(f"{name:<40} {label:<12} {'not yet':>18} {'-':>8}  (last epoch {run.last_epoch})")
+            print(f"{run.name:<40} {label:<12} {'not yet':>18} {'-':>8}  (last epoch {run.last_epoch})")
             continue
         reached[label].append(walked)
-        print(f"{name:<40} {label:<12} {walked[0]:>18,.0f} {walked[1]:>8.0f}")
+        print(f"{run.name:<40} {label:<12} {walked[0]:>18,.0f} {walked[1]:>8.0f}")
 
     print()
     medians = {}

@@ -151,6 +151,13 @@ def run_names(paths: Sequence[Path], roots: Sequence[Path]) -> list[str]:
     return [str(path.resolve().relative_to(base)) if path.resolve() != base else path.name for path in paths]
 
 
+def load_runs(roots: Sequence[Path], exclude: Sequence[Path] = ()) -> list[Run]:
+    """Every run under ``roots`` (:func:`discover`), read (:func:`load_run`) and named by
+    :func:`run_names`; raises :class:`ReportError` where a root holds no run."""
+    paths, _ = discover(roots, exclude)
+    return [load_run(path, name) for path, name in zip(paths, run_names(paths, roots), strict=True)]
+
+
 # -- keeping a run's record ----------------------------------------------------------
 def record_files(run: Path) -> list[Path]:
     """The run's small files the league reads, relative to the run folder (those that exist)."""
