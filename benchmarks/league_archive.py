@@ -9,7 +9,7 @@ real env steps, wall time and evaluations), ``commands.txt`` (every command the 
 with the commit it ran) and the final evaluation's tables. This copies those small files of every
 run under ``RUNS`` to the same relative folder under ``DEST``, replacing an older copy, so a
 record can be committed as a study goes on and the table rebuilt from it on any machine.
-``benchmarks/league_queue.py --archive DEST`` does it for each run as the run exits.
+``benchmarks/league_queue.py --archive DEST`` does it as its runs go (every 10 minutes, and when each exits).
 """
 
 from __future__ import annotations
