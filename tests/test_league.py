@@ -10,6 +10,7 @@ import itertools
 import math
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -38,12 +39,16 @@ def schedule_config(episodes_per_epoch: int = 10, **evaluation):
         return compose("config", overrides=overrides)
 
 
+EVALUATION_SECONDS = 0.01  # how long the stubbed grid evaluation takes
+
+
 @pytest.fixture
 def grid_stub(monkeypatch):
     """The grid evaluation replaced by fixed figures (the n-th call walks n / 2 m on every design)."""
     calls = []
 
     def evaluate(policy, env_kwargs, designs, episodes_per_design, seed):
+        time.sleep(EVALUATION_SECONDS)
         calls.append(len(designs))
         metres = len(calls) / 2
         return [DesignResult(d.length, d.density, 1, 10 * metres, 0.0, metres, 0.0, metres / 10, 0) for d in designs]
@@ -70,6 +75,8 @@ def test_the_evaluation_runs_at_the_schedule_points_in_real_steps(grid_stub):
     # The evaluations' own episodes and steps, cumulative, apart from the training steps.
     assert [m[columns.EVAL_EPISODES] for m in done.values()] == [4.0, 8.0, 12.0, 16.0, 20.0, 24.0, 28.0]
     assert done[20][columns.EVAL_ENV_STEPS] == 28 * 100
+    # and each evaluation's own wall time (not cumulative: the league sums it)
+    assert all(EVALUATION_SECONDS <= m[columns.EVAL_SECONDS] < 1.0 for m in done.values())
     assert done[4][columns.GRID_MEAN] == 1.0 and evaluation.best["epoch"] == 20  # each walks further: the last
 
 
@@ -114,11 +121,12 @@ EVALUATED_COLUMNS = ["epoch", "imagined", columns.REAL_STEPS, columns.ELAPSED, c
 
 
 def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple[int, float, float]],
-              last: int) -> Path:
+              last: int, evaluation_seconds: float | None = None) -> Path:
     """A run folder as train.py leaves it: its config, Hydra's choices and a metrics.csv of
     1,000-step epochs up to ``last`` real steps (one second each), evaluated at 2,000-step
     points up to 100,000 and 10,000-step ones after; ``segments`` are ``(from step, grid mean,
-    worst design)``, each holding until the next."""
+    worst design)``, each holding until the next. With ``evaluation_seconds``, each evaluation
+    logs that much of its epoch's second as its own (``eval/seconds``), as runs do since it existed."""
     path = root / f"{entry}_seed{seed}"
     (path / ".hydra").mkdir(parents=True)
     config = {"run_name": entry, "seed": seed, "source": {"name": entry.split("-")[1] if kind == "model" else "se",
@@ -129,7 +137,8 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
     choices = {"hydra": {"runtime": {"choices": {"design": "se"}}}}
     OmegaConf.save(OmegaConf.create(choices), path / ".hydra" / "hydra.yaml")
     with (path / "metrics.csv").open("w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=EVALUATED_COLUMNS)
+        fields = EVALUATED_COLUMNS + ([columns.EVAL_SECONDS] if evaluation_seconds is not None else [])
+        writer = csv.DictWriter(file, fieldnames=fields)
         writer.writeheader()
         for epoch in range(1, last // 1000 + 1):
             steps = epoch * 1000
@@ -140,6 +149,8 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
             if evaluation_points(steps, 2000, 100_000, 10_000) > evaluation_points(steps - 1000, 2000, 100_000, 10_000):
                 mean, worst = next((m, w) for start, m, w in reversed(segments) if start <= steps)
                 row.update({columns.GRID_MEAN: mean, columns.GRID_MIN: worst})
+                if evaluation_seconds is not None:
+                    row[columns.EVAL_SECONDS] = evaluation_seconds
             writer.writerow(row)
     return path
 
@@ -189,6 +200,18 @@ def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs
     assert steps_at(runs["se-trpo", 0]) == {"first_walk": 4000, "stays_walking": 10_000, "se_trpo_final": 30_000}
     assert runs["se-trpo", 0].levels["first_walk"].seconds == 4.0  # wall time at it: time/elapsed
     assert steps_at(runs["se-moe-trpo", 0]) == {"first_walk": 2000, "stays_walking": None, "se_trpo_final": None}
+
+
+def test_wall_times_leave_the_evaluations_out_where_the_run_logged_them(tmp_path, runs):
+    segments, last = RUNS["se-trpo", "real", 0]
+    path = write_run(tmp_path, "se-trpo", "real", 0, segments, last, evaluation_seconds=0.25)
+    timed = league.run_result(load_run(path, path.name))
+    # first walk at 4,000 steps: 4 s since the start, of which the evaluations at 2,000 and 4,000 took 0.5
+    assert timed.levels["first_walk"].seconds == 3.5 and timed.evaluation_time_out
+    assert timed.levels["se_trpo_final"].seconds == 30.0 - 15 * 0.25  # evaluated every 2,000 steps to 30,000
+    assert not runs["se-trpo", 0].evaluation_time_out  # an older run's record: evaluations counted in, and said so
+    table = league.format_league(league.make_entries([timed, runs["se-moe-trpo", 1]]))
+    assert "count their evaluations in: se-moe-trpo_seed1" in table and "se-trpo_seed0" not in table.split("in:")[-1]
 
 
 def test_three_walking_evaluations_in_a_row_stay_walking_from_the_first_of_them(runs):

@@ -143,6 +143,33 @@ def test_checks_every_few_steps_end_a_warm_fit_early_however_large_the_data():
     assert per_steps.extras["fit_steps"] % 3 == 0  # it stopped at a check
 
 
+def test_a_check_reads_at_most_validation_rows_per_member_and_a_larger_cap_changes_nothing(monkeypatch):
+    """The cap bounds what one check costs (its rows), and a cap above the held-out set is no cap:
+    the same fit to the bit, so the default's runs are unchanged by the setting existing."""
+    data = toy_transitions(4000, 0)  # 800 held out
+    read = []
+    original = GaussianEnsemble.validation_error
+
+    def recording(self, x, y):
+        read.append(x.shape[1])
+        return original(self, x, y)
+
+    monkeypatch.setattr(GaussianEnsemble, "validation_error", recording)
+    fits = {}
+    for cap in (None, 800, 100):
+        torch.manual_seed(0)
+        model = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(32, 32))
+        read.clear()
+        report = ModelTrainer(max_epochs=3, patience=3, validation_rows=cap).fit(
+            model, data, torch.Generator().manual_seed(0))
+        fits[cap] = (set(read), report, model.state_dict())
+    assert fits[None][0] == fits[800][0] == {800} and fits[100][0] == {100}
+    assert torch.equal(fits[None][1].validation_error, fits[800][1].validation_error)
+    assert all(torch.equal(a, b) for a, b in zip(fits[None][2].values(), fits[800][2].values(), strict=True))
+    # 100 rows estimate the same error: within 30% of the whole held-out set's
+    assert torch.allclose(fits[100][1].validation_error, fits[None][1].validation_error, rtol=0.3)
+
+
 def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
     torch.manual_seed(0)
     model = CellEnsemble(TOY, action_dim=2, length_range=(0.15, 0.2), density_range=(0.4, 0.6), divisions=2,
@@ -175,6 +202,7 @@ def test_cell_ensemble_trains_each_member_on_its_own_cell_only():
         (lambda: ModelTrainer(patience=0), "patience"),
         (lambda: ModelTrainer(max_steps=0), "max_steps must be a positive integer or None, got 0"),
         (lambda: ModelTrainer(check_every=0), "check_every must be a positive integer or None, got 0"),
+        (lambda: ModelTrainer(validation_rows=0), "validation_rows must be a positive integer or None, got 0"),
     ],
 )
 def test_bad_model_settings_name_the_value(factory, match):

@@ -21,6 +21,7 @@ from unipolicy_rl.training.metrics_file import (
     ELAPSED,
     EPOCH,
     EPOCH_TIMES,
+    EVAL_SECONDS,
     GRID_MEAN,
     GRID_MIN,
     GRID_WALKING,
@@ -47,12 +48,14 @@ __all__ = [
     "Series",
     "column",
     "elapsed_seconds",
+    "evaluation_time_logged",
     "first_walking",
     "median_to_walk",
     "real_env_steps",
     "series",
     "steps_are_derived",
     "surrogate_figures",
+    "training_seconds",
 ]
 
 
@@ -86,6 +89,23 @@ def elapsed_seconds(run: Run) -> np.ndarray:
         return _carry_forward(column(run, ELAPSED))
     parts = [np.nan_to_num(column(run, name)) for name in EPOCH_TIMES if name in run.columns]
     return np.cumsum(np.sum(parts, axis=0)) if parts else np.full(len(run.rows), math.nan)
+
+
+def evaluation_time_logged(run: Run) -> bool:
+    """Whether the run logged each periodic evaluation's wall time (``eval/seconds``; older runs did not)."""
+    return EVAL_SECONDS in run.columns
+
+
+def training_seconds(run: Run) -> np.ndarray:
+    """Per row: the wall time since the run started without the periodic evaluations' own time,
+    so that runs evaluated more often (a slower learner evaluates more times on the way to a
+    level, on the same schedule in real env steps) are not charged for it. A row's elapsed time
+    is logged after its evaluation, so that evaluation is taken out too. Runs that did not log
+    ``eval/seconds`` keep their evaluations in (:func:`evaluation_time_logged` tells)."""
+    seconds = elapsed_seconds(run)
+    if not evaluation_time_logged(run):
+        return seconds
+    return seconds - np.cumsum(np.nan_to_num(column(run, EVAL_SECONDS)))
 
 
 def steps_are_derived(run: Run) -> bool:

@@ -6,6 +6,7 @@ rows go (logger, metrics.csv, progress bar). None of it is the algorithm; train.
 from __future__ import annotations
 
 import contextlib
+import time
 from pathlib import Path
 
 import tqdm
@@ -128,8 +129,9 @@ class PeriodicEvaluation:
     told by the real env steps before and after the epoch, not by anything the process
     remembers: a resumed run evaluates at the same points as an uninterrupted one. The rows it
     adds carry the run's ``real_env_steps`` (where it evaluated) and the evaluation's own cost,
-    cumulative over the run (``eval/episodes``, ``eval/env_steps``): evaluation episodes are
-    never training steps, and nothing trains on them.
+    cumulative over the run (``eval/episodes``, ``eval/env_steps``), and its wall seconds
+    (``eval/seconds``, this evaluation's alone): evaluation episodes are never training steps,
+    nothing trains on them, and the league takes their time out of a run's wall time.
 
     For ``robot=grammar`` the grid is every morphology of ``evaluation.morphologies`` over an
     ``evaluation.morphology_grid`` design grid (:class:`MorphologyGrid`); the ``eval/`` columns are
@@ -172,6 +174,7 @@ class PeriodicEvaluation:
         if not self.due(real_env_steps, epoch_steps):
             return {}
         extra = {}
+        started = time.perf_counter()
         if self.morphology_grid is None:
             summary = summarise(evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
                                                     seed=self.cfg.seed))
@@ -192,6 +195,7 @@ class PeriodicEvaluation:
             columns.GRID_REWARD: summary["mean_episode_reward"],
             columns.EVAL_EPISODES: float(episodes),
             columns.EVAL_ENV_STEPS: float(episodes * self.cfg.robot.episode_length),
+            columns.EVAL_SECONDS: time.perf_counter() - started,
             **extra,
         }
         evaluation = {"epoch": epoch, "grid_mean": metrics[columns.GRID_MEAN], "grid_min": metrics[columns.GRID_MIN]}
