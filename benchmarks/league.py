@@ -17,7 +17,11 @@ level counts as longer than any that did. Then (d): the grid mean and worst desi
 real env steps, log axis, one band per entry) and ``league.csv`` (the table's numbers) to
 ``--out``.
 
-Wall times are the runs' own: compare them only between runs that shared the machine alike.
+Wall times are the runs' own, less the periodic evaluations' (each logs ``eval/seconds``; an
+entry that learns slowly evaluates more often on its way to a level, on the same schedule in
+real env steps, and is not charged for it; runs recorded before that column count their
+evaluations in, and the table names them). Compare them only between runs that shared the
+machine alike.
 """
 
 from __future__ import annotations
