@@ -17,10 +17,10 @@ level counts as longer than any that did. Then (d): the grid mean and worst desi
 real env steps, log axis, one band per entry) and ``league.csv`` (the table's numbers) to
 ``--out``.
 
-Wall times are the runs' own, less the periodic evaluations' (each logs ``eval/seconds``; an
-entry that learns slowly evaluates more often on its way to a level, on the same schedule in
-real env steps, and is not charged for it; runs recorded before that column count their
-evaluations in, and the table names them). Compare them only between runs that shared the
+Wall times are the seconds a run spent training (each real epoch's ``time/collect`` and
+``time/update``: collecting, fitting, updating), its periodic evaluations and checkpoints left
+out: an entry that learns slowly evaluates more often on its way to a level (the schedule is in
+real env steps) and is not charged for it. Compare them only between runs that shared the
 machine alike.
 """
 

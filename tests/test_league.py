@@ -121,12 +121,13 @@ EVALUATED_COLUMNS = ["epoch", "imagined", columns.REAL_STEPS, columns.ELAPSED, c
 
 
 def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple[int, float, float]],
-              last: int, evaluation_seconds: float | None = None) -> Path:
+              last: int, epoch_times: tuple[float, float] | None = None) -> Path:
     """A run folder as train.py leaves it: its config, Hydra's choices and a metrics.csv of
     1,000-step epochs up to ``last`` real steps (one second each), evaluated at 2,000-step
     points up to 100,000 and 10,000-step ones after; ``segments`` are ``(from step, grid mean,
-    worst design)``, each holding until the next. With ``evaluation_seconds``, each evaluation
-    logs that much of its epoch's second as its own (``eval/seconds``), as runs do since it existed."""
+    worst design)``, each holding until the next. With ``epoch_times`` (collect, update), each
+    real epoch logs them (``time/collect``, ``time/update``), the rest of its second being its
+    evaluation; a model-based run's imagined rows then log 0.1 s of each, parts of the update."""
     path = root / f"{entry}_seed{seed}"
     (path / ".hydra").mkdir(parents=True)
     config = {"run_name": entry, "seed": seed, "source": {"name": entry.split("-")[1] if kind == "model" else "se",
@@ -137,20 +138,22 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
     choices = {"hydra": {"runtime": {"choices": {"design": "se"}}}}
     OmegaConf.save(OmegaConf.create(choices), path / ".hydra" / "hydra.yaml")
     with (path / "metrics.csv").open("w", newline="") as file:
-        fields = EVALUATED_COLUMNS + ([columns.EVAL_SECONDS] if evaluation_seconds is not None else [])
+        fields = EVALUATED_COLUMNS + (list(columns.EPOCH_TIMES) if epoch_times is not None else [])
         writer = csv.DictWriter(file, fieldnames=fields)
         writer.writeheader()
         for epoch in range(1, last // 1000 + 1):
             steps = epoch * 1000
             if kind == "model":  # an imagined batch's row first: no evaluation on it
-                writer.writerow({"epoch": epoch, "imagined": 1.0, columns.REAL_STEPS: steps - 1000,
-                                 columns.ELAPSED: epoch - 0.5})
+                imagined = {"epoch": epoch, "imagined": 1.0, columns.REAL_STEPS: steps - 1000, columns.ELAPSED: epoch - 0.5}
+                if epoch_times is not None:
+                    imagined.update({columns.COLLECT_TIME: 0.1, columns.UPDATE_TIME: 0.1})
+                writer.writerow(imagined)
             row = {"epoch": epoch, "imagined": 0.0, columns.REAL_STEPS: steps, columns.ELAPSED: float(epoch)}
+            if epoch_times is not None:
+                row.update({columns.COLLECT_TIME: epoch_times[0], columns.UPDATE_TIME: epoch_times[1]})
             if evaluation_points(steps, 2000, 100_000, 10_000) > evaluation_points(steps - 1000, 2000, 100_000, 10_000):
                 mean, worst = next((m, w) for start, m, w in reversed(segments) if start <= steps)
                 row.update({columns.GRID_MEAN: mean, columns.GRID_MIN: worst})
-                if evaluation_seconds is not None:
-                    row[columns.EVAL_SECONDS] = evaluation_seconds
             writer.writerow(row)
     return path
 
@@ -202,16 +205,15 @@ def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs
     assert steps_at(runs["se-moe-trpo", 0]) == {"first_walk": 2000, "stays_walking": None, "se_trpo_final": None}
 
 
-def test_wall_times_leave_the_evaluations_out_where_the_run_logged_them(tmp_path, runs):
+@pytest.mark.parametrize("kind", ["real", "model"])
+def test_wall_times_are_the_seconds_spent_training_without_the_evaluations(tmp_path, kind):
     segments, last = RUNS["se-trpo", "real", 0]
-    path = write_run(tmp_path, "se-trpo", "real", 0, segments, last, evaluation_seconds=0.25)
+    path = write_run(tmp_path, f"se-{kind}", kind, 0, segments, last, epoch_times=(0.5, 0.25))
     timed = league.run_result(load_run(path, path.name))
-    # first walk at 4,000 steps: 4 s since the start, of which the evaluations at 2,000 and 4,000 took 0.5
-    assert timed.levels["first_walk"].seconds == 3.5 and timed.evaluation_time_out
-    assert timed.levels["se_trpo_final"].seconds == 30.0 - 15 * 0.25  # evaluated every 2,000 steps to 30,000
-    assert not runs["se-trpo", 0].evaluation_time_out  # an older run's record: evaluations counted in, and said so
-    table = league.format_league(league.make_entries([timed, runs["se-moe-trpo", 1]]))
-    assert "count their evaluations in: se-moe-trpo_seed1" in table and "se-trpo_seed0" not in table.split("in:")[-1]
+    # first walk at 4,000 steps: 4 epochs of 0.75 s training each (the imagined rows' times are
+    # parts of their epoch's update, not added again), not the 4 s since the start
+    assert timed.levels["first_walk"].seconds == 3.0
+    assert timed.levels["se_trpo_final"].seconds == 30 * 0.75
 
 
 def test_three_walking_evaluations_in_a_row_stay_walking_from_the_first_of_them(runs):

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from unipolicy_rl.evaluation import GRID_WALKING_MEAN, WALKING_DISPLACEMENT, walks_the_grid
-from unipolicy_rl.report.metrics import column, evaluation_time_logged, real_env_steps, training_seconds
+from unipolicy_rl.report.metrics import column, real_env_steps, training_seconds
 from unipolicy_rl.report.runs import Run
 from unipolicy_rl.training.metrics_file import GRID_MEAN, GRID_MIN
 
@@ -61,7 +61,7 @@ class Evaluation:
     """One periodic grid evaluation of a run."""
 
     steps: float  # the run's real env steps when it evaluated
-    seconds: float  # wall time since the run started, the periodic evaluations' own time taken out where logged
+    seconds: float  # wall seconds spent training up to it (evaluations and checkpoints left out)
     grid_mean: float  # m
     grid_min: float  # m, the worst design
 
@@ -157,8 +157,6 @@ class RunResult:
     # Trained to its budget (its final evaluation exists). A run still going that has not reached a
     # level yet may still reach it: the table counts it apart ("unfinished"), not as never reaching it.
     finished: bool = True
-    # Its wall times leave the periodic evaluations out (it logged eval/seconds; older runs did not).
-    evaluation_time_out: bool = True
 
 
 def run_result(run: Run) -> RunResult:
@@ -166,8 +164,7 @@ def run_result(run: Run) -> RunResult:
     return RunResult(name=run.name, entry=run.source, seed=(run.config or {}).get("seed"),
                      model_free=is_model_free(run), step_schedule=on_step_schedule(run), evaluations=tuple(found),
                      levels={level.key: level.find(found) for level in LEVELS},
-                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=run.finished,
-                     evaluation_time_out=evaluation_time_logged(run))
+                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=run.finished)
 
 
 # -- statistics ------------------------------------------------------------------------
@@ -306,7 +303,7 @@ def ratio_lines(entries: Sequence[Entry], key: str, baseline: str = BASELINE) ->
 def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
     """The league as printed: the entries and their seeds, then per level reached k/n, the
     median real env steps [95% interval], the median wall time, and the two ratios; then the
-    grid at each milestone, and which runs' wall times still hold their evaluations."""
+    grid at each milestone."""
     width = max([len("entry"), *(len(entry.name) for entry in entries)])
     lines = [f"{'entry':<{width}}  {'kind':<11} {'runs':>4}  seeds"]
     for entry in entries:
@@ -338,10 +335,8 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
             else:
                 cells.append(f"- (0/{len(entry.runs)})")
         lines.append((f"{entry.name:<{width}}  " + "  ".join(f"{cell:<22}" for cell in cells)).rstrip())
-    lines += ["", "median wall s: wall time since the run started, the periodic evaluations' own time left out"]
-    with_evaluations = [run.name for entry in entries for run in entry.runs if not run.evaluation_time_out]
-    if with_evaluations:
-        lines.append(f"  (runs that did not log eval/seconds count their evaluations in: {', '.join(with_evaluations)})")
+    lines += ["", "median wall s: wall seconds spent training (collecting, fitting, updating), the periodic "
+              "evaluations and checkpoints left out"]
     return "\n".join(lines)
 
 

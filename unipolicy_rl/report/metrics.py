@@ -21,10 +21,10 @@ from unipolicy_rl.training.metrics_file import (
     ELAPSED,
     EPOCH,
     EPOCH_TIMES,
-    EVAL_SECONDS,
     GRID_MEAN,
     GRID_MIN,
     GRID_WALKING,
+    IMAGINED,
     IMAGINED_PREFIX,
     REAL_STEPS,
     REWARD,
@@ -48,7 +48,6 @@ __all__ = [
     "Series",
     "column",
     "elapsed_seconds",
-    "evaluation_time_logged",
     "first_walking",
     "median_to_walk",
     "real_env_steps",
@@ -91,21 +90,19 @@ def elapsed_seconds(run: Run) -> np.ndarray:
     return np.cumsum(np.sum(parts, axis=0)) if parts else np.full(len(run.rows), math.nan)
 
 
-def evaluation_time_logged(run: Run) -> bool:
-    """Whether the run logged each periodic evaluation's wall time (``eval/seconds``; older runs did not)."""
-    return EVAL_SECONDS in run.columns
-
-
 def training_seconds(run: Run) -> np.ndarray:
-    """Per row: the wall time since the run started without the periodic evaluations' own time,
-    so that runs evaluated more often (a slower learner evaluates more times on the way to a
-    level, on the same schedule in real env steps) are not charged for it. A row's elapsed time
-    is logged after its evaluation, so that evaluation is taken out too. Runs that did not log
-    ``eval/seconds`` keep their evaluations in (:func:`evaluation_time_logged` tells)."""
-    seconds = elapsed_seconds(run)
-    if not evaluation_time_logged(run):
-        return seconds
-    return seconds - np.cumsum(np.nan_to_num(column(run, EVAL_SECONDS)))
+    """Per row: the wall seconds the run spent training up to it, its periodic evaluations and
+    checkpoints left out, so that a learner that evaluates more often on its way to a level (the
+    schedule is in real env steps) is not charged for it. Each real epoch's row logs how long it
+    collected (``time/collect``) and how long everything after took up to its evaluation
+    (``time/update``: the policy updates, and a model-based run's fit and imagined updates, whose
+    own rows are parts of it and are not added again); every run logs both. A run without them
+    falls back to its elapsed time (:func:`elapsed_seconds`)."""
+    if not all(name in run.columns for name in EPOCH_TIMES):
+        return elapsed_seconds(run)
+    real = column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
+    spent = np.sum([np.nan_to_num(column(run, name)) for name in EPOCH_TIMES], axis=0)
+    return np.cumsum(np.where(real, spent, 0.0))
 
 
 def steps_are_derived(run: Run) -> bool:

@@ -48,7 +48,7 @@ WORST_MORPHOLOGY_MEAN = EVAL_PREFIX + "worst_morphology_mean_displacement"  # th
 # The evaluations' own cost so far, cumulative over the run (never counted in real_env_steps).
 EVAL_EPISODES = EVAL_PREFIX + "episodes"  # evaluation episodes run (one per grid cell per evaluation)
 EVAL_ENV_STEPS = EVAL_PREFIX + "env_steps"  # their env steps: episodes x episode length (a faulted one counts whole)
-EVAL_SECONDS = EVAL_PREFIX + "seconds"  # this evaluation's wall seconds (inside time/elapsed; nothing trains then)
+EVAL_SECONDS = EVAL_PREFIX + "seconds"  # this evaluation's wall seconds (in time/elapsed, not in the epoch's times)
 
 # -- model-based sources -----------------------------------------------------------------
 IMAGINED_PREFIX = "imagined/"  # imagined batches' figures: never real returns

@@ -131,7 +131,7 @@ class PeriodicEvaluation:
     adds carry the run's ``real_env_steps`` (where it evaluated) and the evaluation's own cost,
     cumulative over the run (``eval/episodes``, ``eval/env_steps``), and its wall seconds
     (``eval/seconds``, this evaluation's alone): evaluation episodes are never training steps,
-    nothing trains on them, and the league takes their time out of a run's wall time.
+    nothing trains on them, and the league's wall times leave them out.
 
     For ``robot=grammar`` the grid is every morphology of ``evaluation.morphologies`` over an
     ``evaluation.morphology_grid`` design grid (:class:`MorphologyGrid`); the ``eval/`` columns are
