@@ -2,7 +2,6 @@
 (its own replay buffer, many gradient steps per real step) without a special case."""
 
 import csv
-import hashlib
 import subprocess
 import sys
 from pathlib import Path
@@ -112,14 +111,25 @@ def test_the_normaliser_refresh_reports_the_kl_it_causes_with_the_losses_kl():
     assert abs(kls["preserve"]) < 1e-6 < kls["jump"]
 
 
-# Recorded on main before robot=grammar was wired into the learner and the collector (torch 2.13
-# CPU, one thread): two TRPO updates and normaliser refreshes of the default learner.
-DEFAULT_LEARNER_SHA256 = "a2b39c3b912cd3dac978d01fda95e1417f10c98abad732a665f8adcaa873eb65"
-DEFAULT_LEARNER_KL = "0x1.fb92500000000p-8"
+# Recorded on main (torch 2.13 CPU, one thread, AVX-512): two TRPO updates and normaliser refreshes
+# of the default learner, as (sum of magnitudes, a fixed random projection) of the actor's, the
+# critic's and the observation statistics' numbers, then the last update's KL. Not bit for bit:
+# CPUs with other vector units order float sums otherwise (the bits of an earlier record differed
+# between two machines; ATEN_CPU_CAPABILITY=avx2 against avx512 moves these by up to 6e-6
+# relative); any change to the learner's arithmetic moves them far more than RELATIVE_TOLERANCE.
+DEFAULT_LEARNER_FINGERPRINT = [1128.5545521223667, 14.249180289640416, 1134.4549229130716, 4.276918448639862,
+                               43599.21412719615, -7131.526179186718, 0.007744934409856796]
+RELATIVE_TOLERANCE = 1e-4
+
+
+def _fingerprint(values: list[torch.Tensor]) -> list[float]:
+    flat = torch.cat([value.detach().double().reshape(-1) for value in values])
+    projection = torch.randn(flat.numel(), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return [float(flat.abs().sum()), float(flat @ projection)]
 
 
 def test_the_default_learner_s_numbers_have_not_moved():
-    """The flat path (robot=vertebrate policy=mlp, the default) is bit for bit what it was."""
+    """The flat path (robot=vertebrate policy=mlp, the default) computes what it did."""
     from hydra import compose, initialize_config_dir
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -147,12 +157,9 @@ def test_the_default_learner_s_numbers_have_not_moved():
     finally:
         torch.set_num_threads(threads)
     state = learner.state_dict()
-    digest = hashlib.sha256()
-    for name in ("actor", "critic"):
-        for value in state[name].values():
-            digest.update(value.detach().numpy().tobytes())
-    digest.update(state["observation_statistics"]["mean"].numpy().tobytes())
-    digest.update(state["observation_statistics"]["squared_deviations"].numpy().tobytes())
+    statistics = state["observation_statistics"]
+    fingerprint = [*_fingerprint(list(state["actor"].values())), *_fingerprint(list(state["critic"].values())),
+                   *_fingerprint([statistics["mean"], statistics["squared_deviations"]]), float(metrics["train/kl"])]
     if not torch.__version__.startswith("2.13"):
-        pytest.skip(f"the recorded bits are torch 2.13's; this is {torch.__version__}")
-    assert (digest.hexdigest(), metrics["train/kl"].hex()) == (DEFAULT_LEARNER_SHA256, DEFAULT_LEARNER_KL)
+        pytest.skip(f"the recorded numbers are torch 2.13's; this is {torch.__version__}")
+    assert fingerprint == pytest.approx(DEFAULT_LEARNER_FINGERPRINT, rel=RELATIVE_TOLERANCE)
