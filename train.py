@@ -8,8 +8,9 @@
 
 One loop, one real epoch per pass, read top to bottom: real episodes -> a policy update on them
 (a real source; a model-based one where ``imagination.train_on_real``) -> the observation
-normaliser's refresh -> for a model-based source: the replay buffer, the model fit, then policy
-updates on imagined branches until the stopping rule says stop -> evaluation -> checkpoint. Ends
+normaliser's refresh -> for a model-based source: the replay buffer, the model fit (every
+``imagination.fit_every`` epochs), then policy updates on imagined branches until the stopping rule
+says stop -> evaluation -> checkpoint. Ends
 with the saved policy evaluated on the design grid.
 """
 
@@ -97,8 +98,9 @@ def main(cfg: DictConfig) -> dict:
                 new_transitions = world.buffer.extend(batch, epoch)
                 if fitted_before:
                     metrics.update(fresh_error(world.model, new_transitions))
-                fit = world.trainer.fit(world.model, world.buffer.contents(), reseed(cfg.seed, epoch, MODEL_FIT))
-                metrics.update(fit.as_metrics())
+                if world.imagination.settings.fits_after(epoch):
+                    fit = world.trainer.fit(world.model, world.buffer.contents(), reseed(cfg.seed, epoch, MODEL_FIT))
+                    metrics.update(fit.as_metrics())
                 # ---- Policy training on imagined branches, until the stopping rule says stop
                 imagined = world.imagination.epoch(epoch, world.buffer.contents(), learner.policy)
                 for rollout in imagined:

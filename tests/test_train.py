@@ -320,6 +320,18 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 
 
+def test_a_model_fitted_every_second_epoch_still_trains_the_policy_on_imagined_data_every_epoch(tmp_path):
+    result = run_train(*MOE_TINY, "epochs=3", "imagination.fit_every=2", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    with (tmp_path / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    fitted = {row["epoch"]: bool(row["model/fit_steps"]) for row in rows if row["imagined"] == "0.0"}
+    assert fitted == {"1": True, "2": False, "3": True}
+    assert {row["epoch"] for row in rows if row["imagined"] == "1.0"} == {"1", "2", "3"}
+    checkpoint = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert checkpoint["config"]["imagination"]["fit_every"] == 2
+
+
 # source=moe on robot=grammar: the ensemble conditioned on the morphology, tiny, beside the padded MLP.
 GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "robot.split.train_size=3",
                     "robot.split.held_out_size=2", "evaluation.every_steps=0", "imagination.steps_per_batch=40",
@@ -359,6 +371,7 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
         ("world_model.model.members=0", "members must be a positive integer, got 0"),
         ("imagination.horizon.start=0", "horizon.start must be an integer >= 1, got 0"),
         ("imagination.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
+        ("imagination.fit_every=0", "fit_every must be a positive integer, got 0"),
     ],
 )
 def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):

@@ -135,6 +135,11 @@ class ImaginationSettings:
             :mod:`~unipolicy_rl.world_models.disagreement`), truncated; None: branches run their
             horizon (ending early only on a model fault).
         buffer_capacity: real transitions kept (FIFO).
+        fit_every: real epochs from one model fit to the next (1: after every epoch). In between,
+            the policy still trains on imagined branches from the newest real states, under the
+            model of the latest fit: one more epoch of data changes a model fitted on tens of
+            epochs little, and the fit is the largest cost of a model-based epoch (mbrl-lib's
+            ``freq_train_model``; MBPO refits every 250 real steps).
         stopping: how many updates follow each model fit.
     """
 
@@ -147,12 +152,13 @@ class ImaginationSettings:
     train_on_real: bool = False
     disagreement_cut: float | None = None
     buffer_capacity: int = 200_000
+    fit_every: int = 1
     stopping: StoppingRule = StoppingRule()
 
     def __post_init__(self) -> None:
         if self.rollout not in ROLLOUTS:
             raise ValueError(f"rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
-        for name in ("steps_per_batch", "buffer_capacity"):
+        for name in ("steps_per_batch", "buffer_capacity", "fit_every"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
@@ -160,6 +166,12 @@ class ImaginationSettings:
             raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
         if self.disagreement_cut is not None:
             check_threshold(self.disagreement_cut)
+
+    def fits_after(self, epoch: int) -> bool:
+        """Whether the world model is fitted after real epoch ``epoch`` (counted from 1): the first
+        epoch and every ``fit_every``-th after it, so a run's fits depend on its epoch alone (a
+        resumed run fits where the straight one did)."""
+        return (epoch - 1) % self.fit_every == 0
 
 
 def check_stopping_rule(stopping: StoppingRule, model: Dynamics) -> None:
