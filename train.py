@@ -9,9 +9,8 @@
 One loop, one real epoch per pass, read top to bottom: real episodes -> a policy update on them
 (a real source; a model-based one where ``imagination.train_on_real``) -> the observation
 normaliser's refresh -> for a model-based source: the replay buffer, the model fit (every
-``imagination.fit_every`` epochs), then policy updates on imagined branches until the stopping rule
-says stop -> evaluation -> checkpoint. Ends
-with the saved policy evaluated on the design grid.
+``imagination.fit_every`` epochs), then policy updates on imagined branches until the stopping
+rule says stop -> evaluation -> checkpoint. Ends with the saved policy evaluated on the design grid.
 """
 
 from __future__ import annotations
