@@ -1,7 +1,7 @@
 """Train a universal walking policy on the real robot or on a world model fitted to it.
 
     python train.py                         # SE-TRPO, thesis protocol (600 epochs x 10 episodes)
-    python train.py source=moe              # SE-MOE-TRPO: the ensemble world model, ME-TRPO's rule
+    python train.py source=moe              # SE-MOE-TRPO: the ensemble world model, 20 imagined updates per fit
     python train.py source=de epochs=100    # any override
     python train.py -m source=de,se seed=0,1,2
     python train.py resume=outputs/se-trpo/seed0/<run>/checkpoint.pt

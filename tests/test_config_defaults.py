@@ -40,7 +40,7 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.collectors.HorizonSchedule": ("imagination/branch.yaml", "horizon"),
     "unipolicy_rl.collectors.StoppingRule": ("imagination/branch.yaml", "stopping"),
     "unipolicy_rl.world_models.GaussianEnsemble": ("world_model/moe.yaml", "model"),
-    "unipolicy_rl.world_models.ModelTrainer": ("world_model/moe.yaml", "trainer"),
+    "unipolicy_rl.world_models.ModelTrainer": ("world_model/moe_thesis.yaml", "trainer"),
     "unipolicy_rl.world_models.CellEnsemble": ("world_model/moe_thesis.yaml", "model"),
     "unipolicy_rl.world_models.TokenEnsemble": ("world_model/robot/grammar.yaml", "model"),
     "unipolicy_rl.world_models.PCEDynamics": ("world_model/pce.yaml", "model"),
@@ -56,7 +56,8 @@ VARIANTS: dict[tuple[str, str], dict[str, object]] = {
     ("robot/grammar.yaml", "split.train_limits"): {"segments": [2, 4], "leg_pairs": [1, 2]},  # split's TRAIN_LIMITS
     ("robot/grammar.yaml", "physics"): {},  # the same physics and reward as the vertebrate's
     ("robot/grammar.yaml", "reward"): {},
-    ("world_model/moe_thesis.yaml", "trainer"): {},
+    # the default MOE's fits: checks every 25 steps on 2,000 held-out rows, flat in the buffer
+    ("world_model/moe.yaml", "trainer"): {"check_every": 25, "validation_rows": 2000},
     ("world_model/pce_thesis.yaml", "trainer"): {"oversampling": 20.0},  # the thesis PCE's correlated samples
     ("world_model/pce_sparse.yaml", "trainer"): {},
 }
@@ -247,7 +248,7 @@ def test_inheriting_yamls_set_only_what_differs_from_their_base():
 
 
 def test_a_changed_default_a_missing_argument_and_a_typo_are_flagged():
-    node = resolved("world_model/moe.yaml", "trainer")
+    node = resolved("world_model/moe_thesis.yaml", "trainer")
     assert not node_disagreements(node, "unipolicy_rl.world_models.ModelTrainer", base=True)
     changed = {**node, "max_epochs": 50}
     assert node_disagreements(changed, "unipolicy_rl.world_models.ModelTrainer", base=True) == [
