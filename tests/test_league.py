@@ -203,6 +203,9 @@ def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs
     assert steps_at(runs["se-trpo", 0]) == {"first_walk": 4000, "stays_walking": 10_000, "se_trpo_final": 30_000}
     assert runs["se-trpo", 0].levels["first_walk"].seconds == 4.0  # wall time at it: time/elapsed
     assert steps_at(runs["se-moe-trpo", 0]) == {"first_walk": 2000, "stays_walking": None, "se_trpo_final": None}
+    # The per-run table shows each level's real steps and the run's own training seconds there.
+    row = next(line for line in league.format_runs([runs["se-trpo", 0]]).splitlines() if line.startswith("se-trpo"))
+    assert "4,000 (4 s)" in row and "30,000 (" in row
 
 
 @pytest.mark.parametrize("kind", ["real", "model"])

@@ -341,12 +341,16 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
 
 
 def format_runs(results: Sequence[RunResult]) -> str:
-    """Each run: its entry, seed, and the real env steps at which it reached each level."""
+    """Each run: its entry, seed, and the real env steps (and training seconds) at which it reached each level.
+
+    The seconds are the run's own: compare them between runs that shared the machine alike
+    (the entries' medians mix runs of different days and loads)."""
     width = max([len("run"), *(len(result.name) for result in results)])
-    lines = [f"{'run':<{width}}  {'entry':<16} " + " ".join(f"{level.label + ' ' + level.key:>19}" for level in LEVELS)
+    lines = [f"{'run':<{width}}  {'entry':<16} " + " ".join(f"{level.label + ' ' + level.key:>22}" for level in LEVELS)
              + f" {'evaluations':>11} {'last at':>9}  status"]
     for result in results:
-        reached = " ".join(f"{format_count(e.steps) if e else '-':>19}" for e in result.levels.values())
+        reached = " ".join(f"{f'{format_count(e.steps)} ({e.seconds:,.0f} s)' if e else '-':>22}"
+                           for e in result.levels.values())
         last = f"{result.evaluations[-1].steps:,.0f}" if result.evaluations else "-"
         note = "" if result.step_schedule else "  (evaluated every evaluation.every epochs: an older run)"
         status = "done" if result.finished else "unfinished"
