@@ -9,8 +9,9 @@
 One loop, one real epoch per pass, read top to bottom: real episodes -> a policy update on them
 (a real source; a model-based one where ``imagination.train_on_real``) -> the observation
 normaliser's refresh -> for a model-based source: the replay buffer, the model fit (every
-``imagination.fit_every`` epochs), then policy updates on imagined branches until the stopping
-rule says stop -> evaluation -> checkpoint. Ends with the saved policy evaluated on the design grid.
+``imagination.fit_every`` epochs; with ``imagination.background_fit`` on a second thread beside the
+updates, which then use the previous fit), then policy updates on imagined branches until the
+stopping rule says stop -> evaluation -> checkpoint. Ends with the saved policy evaluated on the design grid.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from unipolicy_rl.training.progress import (
     naming_the_checkpoint_on_stall,
 )
 from unipolicy_rl.validation import validate_config
+from unipolicy_rl.world_models import PendingFit
 from unipolicy_rl.world_models.fresh_error import fresh_error
 
 
@@ -97,9 +99,12 @@ def main(cfg: DictConfig) -> dict:
                 new_transitions = world.buffer.extend(batch, epoch)
                 if fitted_before:
                     metrics.update(fresh_error(world.model, new_transitions))
+                fit = None
                 if world.imagination.settings.fits_after(epoch):
-                    fit = world.trainer.fit(world.model, world.buffer.contents(), reseed(cfg.seed, epoch, MODEL_FIT))
-                    metrics.update(fit.as_metrics())
+                    # (imagination.background_fit: on a second thread, the updates below on the previous fit)
+                    fit = PendingFit(world.trainer, world.model, world.buffer.contents(),
+                                     reseed(cfg.seed, epoch, MODEL_FIT),
+                                     background=world.imagination.settings.background_fit and fitted_before)
                 # ---- Policy training on imagined branches, until the stopping rule says stop
                 imagined = world.imagination.epoch(epoch, world.buffer.contents(), learner.policy)
                 for rollout in imagined:
@@ -108,6 +113,8 @@ def main(cfg: DictConfig) -> dict:
                     log.row(epoch, {**row, **real.metrics(), columns.COLLECT_TIME: imagined.rollout_seconds,
                                     columns.UPDATE_TIME: time.perf_counter() - started})
                 metrics.update(imagined.metrics())
+                if fit is not None:
+                    metrics.update(fit.result().as_metrics())  # the model now holds this epoch's fit
             real.update_policy_weights_()
             metrics[columns.COLLECT_TIME] = collected - tick
             metrics[columns.UPDATE_TIME] = time.perf_counter() - collected

@@ -144,7 +144,8 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
         for epoch in range(1, last // 1000 + 1):
             steps = epoch * 1000
             if kind == "model":  # an imagined batch's row first: no evaluation on it
-                imagined = {"epoch": epoch, "imagined": 1.0, columns.REAL_STEPS: steps - 1000, columns.ELAPSED: epoch - 0.5}
+                imagined = {"epoch": epoch, "imagined": 1.0, columns.REAL_STEPS: steps - 1000,
+                            columns.ELAPSED: epoch - 0.5}
                 if epoch_times is not None:
                     imagined.update({columns.COLLECT_TIME: 0.1, columns.UPDATE_TIME: 0.1})
                 writer.writerow(imagined)

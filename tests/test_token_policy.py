@@ -10,12 +10,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from fingerprint import RELATIVE_TOLERANCE, fingerprint
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torch import distributions as D
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-
-from fingerprint import RELATIVE_TOLERANCE, fingerprint
 
 from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
 from unipolicy_rl.masked_normal import MaskedIndependentNormal

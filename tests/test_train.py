@@ -332,6 +332,38 @@ def test_a_model_fitted_every_second_epoch_still_trains_the_policy_on_imagined_d
     assert checkpoint["config"]["imagination"]["fit_every"] == 2
 
 
+def _rows(folder: Path) -> list[dict[str, str]]:
+    with (folder / "metrics.csv").open() as file:
+        return list(csv.DictReader(file))
+
+
+def _learning(rows: list[dict[str, str]], epoch: str) -> list[dict[str, str]]:
+    """The epoch's imagined rows without their timings: what the policy learned from and how."""
+    return [{key: value for key, value in row.items() if key.startswith(("train/", "imagined/"))}
+            for row in rows if row["imagined"] == "1.0" and row["epoch"] == epoch]
+
+
+def test_a_fit_in_the_background_trains_the_policy_on_the_previous_fit_and_resumes_exactly(tmp_path):
+    """imagination.background_fit: epoch 2's updates run on epoch 1's model while epoch 2's fit runs
+    beside them, so they repeat a run that fits every second epoch; epoch 3's use epoch 2's fit."""
+    background = run_train(*MOE_TINY, "epochs=3", "imagination.background_fit=true", f"hydra.run.dir={tmp_path / 'a'}")
+    assert background.returncode == 0, background.stderr
+    every_second = run_train(*MOE_TINY, "epochs=3", "imagination.fit_every=2", f"hydra.run.dir={tmp_path / 'b'}")
+    assert every_second.returncode == 0, every_second.stderr
+    a, b = _rows(tmp_path / "a"), _rows(tmp_path / "b")
+    assert all(row["model/fit_steps"] for row in a if row["imagined"] == "0.0")  # a fit after every epoch
+    for epoch in ("1", "2"):
+        assert _learning(a, epoch) == _learning(b, epoch) != []
+    assert _learning(a, "3") != _learning(b, "3")
+    first = run_train(*MOE_TINY, "epochs=2", "imagination.background_fit=true", f"hydra.run.dir={tmp_path / 'c'}")
+    assert first.returncode == 0, first.stderr
+    resumed = run_train(*MOE_TINY, "epochs=3", "imagination.background_fit=true",
+                        f"resume={tmp_path / 'c' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'd'}")
+    assert resumed.returncode == 0, resumed.stderr
+    assert_same_training_state(load_checkpoint(tmp_path / "a" / "checkpoint.pt"),
+                               load_checkpoint(tmp_path / "d" / "checkpoint.pt"), world_model=True)
+
+
 # source=moe on robot=grammar: the ensemble conditioned on the morphology, tiny, beside the padded MLP.
 GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "robot.split.train_size=3",
                     "robot.split.held_out_size=2", "evaluation.every_steps=0", "imagination.steps_per_batch=40",
@@ -372,10 +404,13 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
         ("imagination.horizon.start=0", "horizon.start must be an integer >= 1, got 0"),
         ("imagination.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
         ("imagination.fit_every=0", "fit_every must be a positive integer, got 0"),
+        ("imagination.background_fit=maybe", "background_fit must be true or false, got 'maybe'"),
+        ("imagination.background_fit=true world_model.trainer.num_threads=2",
+         "set world_model.trainer.num_threads=null (got 2)"),
     ],
 )
 def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):
-    result = run_train(*MOE_TINY, "epochs=1", override, f"hydra.run.dir={tmp_path}")
+    result = run_train(*MOE_TINY, "epochs=1", *override.split(), f"hydra.run.dir={tmp_path}")
     assert result.returncode != 0
     assert match in result.stderr
     assert not (tmp_path / "metrics.csv").exists()

@@ -1,5 +1,7 @@
 """World models: the state layout, the ensembles' fit, the imagined env, the replay buffer and the imagination."""
 
+import copy
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -23,6 +25,7 @@ from unipolicy_rl.world_models import (
     GaussianEnsemble,
     ImaginedWalkerEnv,
     ModelTrainer,
+    PendingFit,
     StateLayout,
     make_world_model,
 )
@@ -168,6 +171,38 @@ def test_a_check_reads_at_most_validation_rows_per_member_and_a_larger_cap_chang
     assert all(torch.equal(a, b) for a, b in zip(fits[None][2].values(), fits[800][2].values(), strict=True))
     # 100 rows estimate the same error: within 30% of the whole held-out set's
     assert torch.allclose(fits[100][1].validation_error, fits[None][1].validation_error, rtol=0.3)
+
+
+def test_a_background_fit_leaves_the_model_alone_until_its_result_then_matches_a_fit_done_at_once():
+    """imagination.background_fit: the policy keeps training on the model as it was while the fit
+    runs on a copy; result() hands over exactly the weights a fit in the loop's thread gives."""
+    torch.manual_seed(0)
+    start = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(32, 32))
+    data, trainer = toy_transitions(2000, 0), ModelTrainer(max_epochs=2, batch_size=256)
+    at_once, behind = copy.deepcopy(start), copy.deepcopy(start)
+    done = PendingFit(trainer, at_once, data, torch.Generator().manual_seed(3), background=False)
+    pending = PendingFit(trainer, behind, data, torch.Generator().manual_seed(3), background=True)
+    before = {name: value.clone() for name, value in behind.state_dict().items()}
+    # While it runs (or once it has run) the model the imagination reads is the old one ...
+    assert all(torch.equal(before[name], value) for name, value in start.state_dict().items())
+    assert all(torch.equal(before[name], value) for name, value in behind.state_dict().items())
+    report = pending.result()
+    # ... and afterwards it holds the fit: the same weights, elites and report as the fit done at once.
+    assert report.elites == done.result().elites
+    assert torch.equal(report.validation_error, done.result().validation_error)
+    for name, value in at_once.state_dict().items():
+        assert torch.equal(behind.state_dict()[name], value), name
+    assert any(not torch.equal(before[name], value) for name, value in behind.state_dict().items())
+
+
+def test_a_background_fit_that_fails_raises_in_the_loop_and_a_thread_count_is_refused():
+    model = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(8,))
+    one_row = toy_transitions(1, 0)  # too few to split into training and validation rows
+    pending = PendingFit(ModelTrainer(max_epochs=1), model, one_row, None, background=True)
+    with pytest.raises(ValueError, match="at least 2 transitions"):
+        pending.result()
+    with pytest.raises(ValueError, match="world_model.trainer.num_threads=null \\(got 2\\)"):
+        PendingFit(ModelTrainer(num_threads=2), model, toy_transitions(100, 0), None, background=True)
 
 
 def test_cell_ensemble_trains_each_member_on_its_own_cell_only():

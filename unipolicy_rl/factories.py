@@ -49,7 +49,7 @@ from unipolicy_rl.policy import (
 )
 from unipolicy_rl.token_statistics import TokenObservationStatistics
 from unipolicy_rl.validation import check_settings
-from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout
+from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout, check_background_fit
 from unipolicy_rl.world_models.token_layout import TOKEN_STATE
 from unipolicy_rl.world_models.trainer import Trainer
 
@@ -155,7 +155,10 @@ def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
                               cfg.robot.episode_length)
     buffer = TransitionBuffer(settings.buffer_capacity, layout.from_full, model.memory_of, layout.state_key,
                               layout.build_keys)
-    return WorldModelParts(model, instantiate(cfg.world_model.trainer), buffer, imagination)
+    trainer = instantiate(cfg.world_model.trainer)
+    if settings.background_fit:
+        check_background_fit(trainer)
+    return WorldModelParts(model, trainer, buffer, imagination)
 
 
 def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout:

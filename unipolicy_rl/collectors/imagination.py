@@ -140,6 +140,11 @@ class ImaginationSettings:
             model of the latest fit: one more epoch of data changes a model fitted on tens of
             epochs little, and the fit is the largest cost of a model-based epoch (mbrl-lib's
             ``freq_train_model``; MBPO refits every 250 real steps).
+        background_fit: fit the model on a second thread while the policy trains on the previous
+            fit's model (one epoch older), the new weights taking over when the epoch's updates
+            are done (:class:`~unipolicy_rl.world_models.PendingFit`). Pays on a machine with a
+            core to spare: the epoch then takes about the longer of the fit and the updates, not
+            their sum. The first fit, with no model before it, runs before the updates.
         stopping: how many updates follow each model fit.
     """
 
@@ -153,6 +158,7 @@ class ImaginationSettings:
     disagreement_cut: float | None = None
     buffer_capacity: int = 200_000
     fit_every: int = 1
+    background_fit: bool = False
     stopping: StoppingRule = StoppingRule()
 
     def __post_init__(self) -> None:
@@ -166,6 +172,8 @@ class ImaginationSettings:
             raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
         if self.disagreement_cut is not None:
             check_threshold(self.disagreement_cut)
+        if not isinstance(self.background_fit, bool):
+            raise ValueError(f"background_fit must be true or false, got {self.background_fit!r}")
 
     def fits_after(self, epoch: int) -> bool:
         """Whether the world model is fitted after real epoch ``epoch`` (counted from 1): the first
