@@ -182,14 +182,13 @@ def test_a_background_fit_leaves_the_model_alone_until_its_result_then_matches_a
     at_once, behind = copy.deepcopy(start), copy.deepcopy(start)
     done = PendingFit(trainer, at_once, data, torch.Generator().manual_seed(3), background=False)
     pending = PendingFit(trainer, behind, data, torch.Generator().manual_seed(3), background=True)
-    before = {name: value.clone() for name, value in behind.state_dict().items()}
+    before = {name: value.clone() for name, value in start.state_dict().items()}
     # While it runs (or once it has run) the model the imagination reads is the old one ...
-    assert all(torch.equal(before[name], value) for name, value in start.state_dict().items())
     assert all(torch.equal(before[name], value) for name, value in behind.state_dict().items())
-    report = pending.result()
+    report, expected = pending.result(), done.result()
     # ... and afterwards it holds the fit: the same weights, elites and report as the fit done at once.
-    assert report.elites == done.result().elites
-    assert torch.equal(report.validation_error, done.result().validation_error)
+    assert report.elites == expected.elites
+    assert torch.equal(report.validation_error, expected.validation_error)
     for name, value in at_once.state_dict().items():
         assert torch.equal(behind.state_dict()[name], value), name
     assert any(not torch.equal(before[name], value) for name, value in behind.state_dict().items())
