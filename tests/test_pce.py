@@ -380,14 +380,15 @@ def test_a_long_pce_rollout_keeps_velocities_within_the_datas_range_but_lets_pos
 
 
 def test_the_one_step_pce_fits_real_robot_data_at_two_samples_per_term():
-    """The first fits of PCE-TRPO: 20 real episodes, 1,600 training transitions, 800 terms, and
-    bootstrap members that see about 63% of them. The robot's features are strongly correlated,
-    and in float32 the Gram matrix lost its positive definiteness here (the run stopped)."""
+    """The first fits of PCE-TRPO: 20 real episodes, 1,600 training transitions, and bootstrap
+    members that draw whole episodes, the one that sees the fewest rows setting the basis (two
+    rows per term). The robot's features are strongly correlated, and in float32 the Gram matrix
+    lost its positive definiteness here (the run stopped)."""
     from torchrl.envs.utils import RandomPolicy
 
     from unipolicy_rl.collectors import transitions
     from unipolicy_rl.envs import BatchedWalkerEnv, RobotSettings
-    from unipolicy_rl.world_models import ClosedFormTrainer, PCEDynamics, StateLayout
+    from unipolicy_rl.world_models import PCEDynamics, StateLayout
 
     env = BatchedWalkerEnv(20, full_state=True, episode_length=None)
     env.set_seed(0)
@@ -396,8 +397,12 @@ def test_the_one_step_pce_fits_real_robot_data_at_two_samples_per_term():
     env.close()
     layout = StateLayout.for_env(RobotSettings(), "thesis", False, "full")
     model = PCEDynamics(layout, 4)
-    report = ClosedFormTrainer().fit(model, transitions(rollout, layout.from_full), torch.Generator().manual_seed(0))
-    assert int(model.fitted_terms) == 800
+    data = transitions(rollout, layout.from_full)
+    order = torch.randperm(2000, generator=torch.Generator().manual_seed(1))
+    train, validation = order[:1600], order[1600:]
+    fewest = int(model.episode_bootstrap(data, train, torch.Generator().manual_seed(0)).samples().min())
+    report = model.fit(data, train, validation, 2.0, torch.Generator().manual_seed(0))
+    assert int(model.fitted_terms) == fewest // 2 and fewest < 1600
     assert torch.isfinite(report.validation_error).all() and (report.validation_error < 1.5).all()
 
 
@@ -583,3 +588,29 @@ def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()
     assert "model/validation_mse" in text and "imagined/reward_per_step" in text
+
+
+def test_the_basis_fitted_is_set_by_the_member_that_sees_the_fewest_rows():
+    """A Poisson draw of whole episodes can leave a member a small share of a buffer of few
+    episodes (a first epoch): the basis then shrinks to what that member can fit, never an
+    underdetermined member."""
+    from test_world_models import TOY, toy_transitions
+
+    from unipolicy_rl.world_models import PCEDynamics
+    from unipolicy_rl.world_models.trainer import EPISODE_START
+
+    model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                        interactions="all", members=3)
+    data = toy_transitions(530, 0)
+    data.set(EPISODE_START, torch.arange(530) % 100 == 0)  # 6 episodes, 5 of them in training
+    train, validation = torch.arange(430), torch.arange(430, 530)
+    assert len(train) / 2.0 > model.terms  # the plain sample alone would fit every term
+    fewest = []
+    for seed in range(10):
+        generator = torch.Generator().manual_seed(seed)
+        samples = model.episode_bootstrap(data, train, torch.Generator().manual_seed(seed)).samples()
+        model.fit(data, train, validation, 2.0, generator)
+        assert int(model.fitted_terms) == min(model.terms, int(samples.min()) // 2)
+        assert torch.isfinite(model.coefficients).all() and (model.coefficients[:, int(model.fitted_terms):] == 0).all()
+        fewest.append(int(samples.min()))
+    assert min(fewest) < model.terms  # some draw left a member fewer rows than the whole basis has terms

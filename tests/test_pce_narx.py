@@ -89,10 +89,11 @@ def test_real_memory_is_the_previous_steps_change_and_action_and_zero_at_an_epis
 
 
 def fitted_real_model(lags: int) -> tuple[PCEDynamics, TensorDict]:
-    """A linear lagged PCE on 8 real robots' 70-step episodes (enough rows for every linear term,
-    the lagged ones included), and the buffer rows it was fitted on."""
+    """A linear lagged PCE on 16 real robots' 70-step episodes (enough rows for every linear term,
+    the lagged ones included, in the bootstrap member that sees the fewest episodes), and the
+    buffer rows it was fitted on."""
     torch.manual_seed(0)
-    env = BatchedWalkerEnv(8, full_state=True)
+    env = BatchedWalkerEnv(16, full_state=True)
     env.set_seed(0)
     batch = env.rollout(70)
     env.close()

@@ -108,8 +108,9 @@ class PCEDynamics(nn.Module):
     the ridge raised where a member cannot be factored, :meth:`solve_with_ridge`),
     and each member's validation error is the mean over outputs of its MSE divided by the
     output's variance (standardised MSE, as the ensemble's trainer reports); an epoch count of 1
-    is reported. The data decide how much of the basis is fitted: the first ``min(terms, n_train
-    / oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
+    is reported. The data decide how much of the basis is fitted: the first ``min(terms, n /
+    oversampling)`` terms in order of total degree (the constant, then every linear term, ...),
+    ``n`` the distinct training rows of the member that sees the fewest,
     the rest kept at zero, so the first epochs (1,000 real transitions) fit a lower-order model
     and no fit is underdetermined. Terms of an input that did not vary in the training data (a
     locked joint's angle and rate) are left out too: on the data they are constant columns,
@@ -278,14 +279,18 @@ class PCEDynamics(nn.Module):
         train, validation = train.to(self.device), validation.to(self.device)
         inputs, targets, next_state = self.regression_data(transitions)
         candidates = self.candidates(inputs[train])
-        terms = min(int(candidates.sum()), int(len(train) / oversampling))
+        bootstrap = self.episode_bootstrap(transitions, train, generator)
+        samples, total = bootstrap.samples(), bootstrap.total()
+        # The member that sees the fewest distinct rows sets the basis: a Poisson draw of whole
+        # episodes can leave out a third of the rows and more when the buffer holds few episodes.
+        fewest = int(samples.min())
+        terms = min(int(candidates.sum()), int(fewest / oversampling))
         if terms < 1:
-            raise ValueError(f"need at least {oversampling} training transitions per PCE term, got {len(train)}")
+            raise ValueError(f"need at least {oversampling} training transitions per PCE term, got {fewest} "
+                             f"(of {len(train)}) in the member that sees the fewest")
         active = candidates.nonzero().squeeze(1)[:terms]  # by total degree: the constant, the linear terms, ...
         self.set_data_ranges(inputs[train], targets[train], next_state[train])
-        bootstrap = self.episode_bootstrap(transitions, train, generator)
         gram, moment, square = self.normal_equations(inputs[train], targets[train], bootstrap, active)
-        samples, total = bootstrap.samples(), bootstrap.total()
         coefficients, diagnostics, ridge = self.solve_with_ridge(gram, moment, square, samples, total)
         self.coefficients.zero_()
         self.coefficients[:, active] = coefficients.float()
