@@ -281,8 +281,52 @@ def test_a_resume_takes_the_checkpoints_network_and_refuses_a_conflicting_overri
     assert "size mismatch" not in conflicting.stderr
     resumed = run_train(*TINY, "epochs=2", "workers=1", f"resume={checkpoint}", f"hydra.run.dir={tmp_path / 'c'}")
     assert resumed.returncode == 0, resumed.stderr
-    assert "took algo.actor_hidden from the checkpoint" in resumed.stdout
+    assert "took algo.actor_hidden=[16]" in resumed.stdout
     assert load_checkpoint(tmp_path / "c" / "checkpoint.pt")["config"]["algo"]["actor_hidden"] == [16]
+
+
+def composed(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
+def saved_run_config(*overrides: str) -> dict:
+    """The config a run with ``overrides`` saves in its checkpoint (resolved, as train.py saves it)."""
+    def resolved(node):  # Hydra's runtime values (the run's name, its folder) exist inside a run only
+        if isinstance(node, dict):
+            return {key: resolved(value) for key, value in node.items()}
+        return "from-the-run" if isinstance(node, str) and "${hydra:" in node else node
+
+    return resolved(OmegaConf.to_container(composed(*overrides), resolve=False))
+
+
+def test_a_resume_continues_with_the_runs_own_settings_and_this_command_lines(capsys):
+    from unipolicy_rl.checkpoint import settings_for_resume
+
+    saved = saved_run_config("source=moe", "seed=3", "imagination.fit_every=2", "algo.max_kl=0.02",
+                             "logger=tensorboard")
+    saved["a_setting_since_removed"] = 1
+    here = composed("source=moe", "epochs=200")
+    resumed = settings_for_resume(here, {"config": saved}, overridden=["source", "epochs"], path="run.pt")
+    # What the command line did not name is the run's, not this configuration's default ...
+    assert (resumed.seed, resumed.imagination.fit_every, resumed.algo.max_kl) == (3, 2, 0.02)
+    # ... an object built from another class is the run's whole, not mixed with the default's ...
+    # (where it writes following this run's folder, not the saved one's).
+    assert resumed.logger._target_ == saved["logger"]["_target_"] != here.logger._target_
+    assert set(resumed.logger) == set(saved["logger"])
+    assert OmegaConf.to_container(resumed.logger)["log_dir"] == "${hydra:runtime.output_dir}/logs"
+    # ... and what it named is this run's.
+    assert resumed.epochs == 200
+    out = capsys.readouterr().out
+    assert "seed=3" in out and "imagination.fit_every=2" in out and "logger (a " in out and "epochs" not in out
+    assert "a_setting_since_removed are not settings of this configuration" in out
+    assert "a_setting_since_removed" not in resumed
+    # Nothing differs, nothing is said.
+    settings_for_resume(composed("source=moe", "seed=3"), {"config": saved_run_config("source=moe", "seed=3")},
+                        overridden=["source", "seed"], path="run.pt")
+    assert capsys.readouterr().out == ""
 
 
 MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every_steps=1", "imagination.steps_per_batch=60",

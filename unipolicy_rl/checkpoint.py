@@ -197,17 +197,25 @@ def _upgraded(state: dict) -> dict:
 
 
 # The settings a checkpoint's weights and model were built for: a resume takes them from the
-# checkpoint. (A dotted key names one setting; a bare group name covers the group.)
+# checkpoint, whole, and refuses a command line that sets them otherwise. (A dotted key names one
+# setting; a bare group name covers the group.)
 ARCHITECTURE_KEYS = ("algo.name", "algo.actor_hidden", "algo.critic_hidden", "algo.activation", "policy", "robot",
                      "world_model.model", "world_model.model_state")
+# Settings a resume never takes from the checkpoint: where this run resumes from.
+NOT_RESUMED = ("resume",)
+_ABSENT = object()
 
 
 def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str], path: str | Path) -> DictConfig:
-    """``cfg`` with the checkpoint's network, robot and world-model settings (:data:`ARCHITECTURE_KEYS`).
+    """``cfg`` with the settings of the run that saved ``state``, except those set on this command line.
 
-    Weights only load into the networks they were trained in, so a resume rebuilds those,
-    and says which settings it took. A setting the user overrode on the command line to
-    something else is refused, naming the keys, rather than failing in ``load_state_dict``.
+    A resume continues a run: every setting the command line does not name is the run's own
+    (``imagination.fit_every``, ``seed``, ``epochs``, ...), not this configuration's default,
+    and the resume prints the ones it took that differ. The networks, robot and world model
+    (:data:`ARCHITECTURE_KEYS`) are taken whole, since weights only load into the networks they
+    were trained in: a command line that sets them to something else is refused, naming the
+    keys, rather than failing in ``load_state_dict``. Any other setting the command line names
+    is this run's (``epochs=200`` extends it); an interpolated setting follows the one it names.
     """
     saved = OmegaConf.create(state["config"])
     pin_token_critic(saved)  # a token policy saved before policy.critic existed keeps its critic
@@ -215,25 +223,91 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
     if saved_kind is not None and kind != saved_kind:
         raise ValueError(f"cannot resume {str(path)!r}: it trained on source.kind={saved_kind!r} data "
                          f"(source={OmegaConf.select(saved, 'source.name')}), this run is {kind!r}")
+
+    def named(key: str) -> bool:
+        return any(name == key or name.startswith(f"{key}.") or key.startswith(f"{name}.") for name in overridden)
+
     resumed = cfg.copy()
     taken, conflicts = [], []
     for key in ARCHITECTURE_KEYS:
         ours, theirs = OmegaConf.select(cfg, key), OmegaConf.select(saved, key)
         if theirs is None or ours == theirs:
             continue
-        explicit = [name for name in overridden if name == key or name.startswith(f"{key}.")
-                    or key.startswith(f"{name}.")]
-        if explicit:
+        if named(key):
             conflicts.append(f"{key}: {_show(ours)} here, {_show(theirs)} in the checkpoint")
         else:
             OmegaConf.update(resumed, key, theirs, force_add=True)
-            taken.append(key)
+            taken.append(f"{key}={_show(theirs)}")
     if conflicts:
         raise ValueError(f"cannot resume {str(path)!r} with other network/robot settings ("
                          + "; ".join(conflicts) + "): drop those overrides, or start a new run")
+    unknown, taken_whole = [], [*ARCHITECTURE_KEYS, *NOT_RESUMED]
+
+    def take_whole(key: str) -> None:
+        value = OmegaConf.select(saved, key).copy()
+        ours = OmegaConf.select(cfg, key)
+        for name in _setting_keys(ours) if OmegaConf.is_dict(ours) else ():
+            if _interpolated(ours, name) and OmegaConf.select(value, name, default=_ABSENT) is not _ABSENT:
+                # Where this run writes (``logger.log_dir``) follows this run, not the saved one's folder.
+                OmegaConf.update(value, name, _raw(ours, name), merge=False)
+        OmegaConf.update(resumed, key, value, merge=False)
+        taken_whole.append(key)
+        taken.append(f"{key} (a {value._target_})")
+
+    def settled(key: str) -> bool:
+        return named(key) or any(key == whole or key.startswith(f"{whole}.") for whole in taken_whole)
+
+    keys = _setting_keys(saved)
+    # An object the run built from another class than this configuration does (another logger,
+    # another trainer) is taken whole: its settings are that class's, not to be mixed with these.
+    for key in keys:
+        parent, _, name = key.rpartition(".")
+        if name == "_target_" and parent and not settled(parent) and \
+                OmegaConf.select(cfg, key, default=_ABSENT) != OmegaConf.select(saved, key):
+            take_whole(parent)
+    for key in keys:
+        if settled(key) or _interpolated(cfg, key):
+            continue
+        ours = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False)
+        if ours is _ABSENT:
+            unknown.append(key)
+        elif _plain(ours) != _plain(theirs := OmegaConf.select(saved, key)):
+            OmegaConf.update(resumed, key, theirs, merge=False)
+            taken.append(f"{key}={_show(theirs)}")
     if taken:
-        print(f"resume: took {', '.join(taken)} from the checkpoint (its weights were trained with them)")
+        print(f"resume: took {', '.join(taken)} from the checkpoint (the run's own settings)")
+    if unknown:
+        print(f"resume: the checkpoint's {', '.join(unknown)} are not settings of this configuration "
+              f"(another group, or an older version): not used")
     return resumed
+
+
+def _setting_keys(node: DictConfig, prefix: str = "") -> list[str]:
+    """The dotted keys of ``node``'s settings: its leaves, a list counting as one."""
+    keys = []
+    for name in node:
+        key, child = f"{prefix}{name}", node._get_node(name)
+        if OmegaConf.is_dict(child) and not child._is_interpolation():
+            keys.extend(_setting_keys(child, f"{key}."))
+        else:
+            keys.append(key)
+    return keys
+
+
+def _interpolated(cfg: DictConfig, key: str) -> bool:
+    """Whether setting ``key`` of ``cfg`` is an interpolation (``${...}``), unresolved."""
+    parent, _, name = key.rpartition(".")
+    node = OmegaConf.select(cfg, parent, default=None, throw_on_resolution_failure=False) if parent else cfg
+    return OmegaConf.is_dict(node) and name in node and OmegaConf.is_interpolation(node, name)
+
+
+def _raw(cfg: DictConfig, key: str) -> str:
+    parent, _, name = key.rpartition(".")
+    return (OmegaConf.select(cfg, parent) if parent else cfg)._get_node(name)._value()
+
+
+def _plain(value):
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
 def _show(value) -> str:
