@@ -374,3 +374,11 @@ def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "--stop-after reached" in printed and "started" not in printed
     assert not (tmp_path / "runs").exists()
+
+
+def test_no_two_of_many_entries_are_drawn_alike():
+    from unipolicy_rl.report.league import line_style
+
+    looks = [line_style(i) for i in range(40)]
+    assert len({(tuple(colour), style) for colour, style in looks}) == 40
+    assert looks[3][1] == "-" and looks[13][0] == looks[3][0] and looks[13][1] != looks[3][1]

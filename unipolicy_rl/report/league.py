@@ -398,15 +398,24 @@ def seed_curves(runs: Sequence[RunResult], value: Callable[[Evaluation], float])
     return x, np.nanmedian(values, axis=0), np.nanmin(values, axis=0), np.nanmax(values, axis=0)
 
 
+LINE_STYLES = ("-", "--", "-.", ":")
+
+
+def line_style(index: int) -> tuple[tuple, str]:
+    """Entry ``index``'s colour and line style: the ten colours of tab10, then the same colours
+    dashed, and so on, so no two of up to 40 entries look alike."""
+    from matplotlib import colormaps
+
+    return colormaps["tab10"](index % 10), LINE_STYLES[(index // 10) % len(LINE_STYLES)]
+
+
 def plot_league(entries: Sequence[Entry], path: Path) -> Path:
     """Two panels against real env steps (log axis): grid mean and worst design, one line (the
     median over seeds) and one band (min to max over seeds) per entry, the levels' thresholds dotted."""
-    from matplotlib import colormaps
     from matplotlib.figure import Figure
 
     figure = Figure(figsize=(12, 4.8), dpi=120, layout="constrained")
     panels = figure.subplots(1, 2, sharex=True)
-    colours = colormaps["tab10"]
     for axes, value, label, thresholds in (
         (panels[0], lambda e: e.grid_mean, "grid mean displacement (m)", (GRID_WALKING_MEAN, SE_TRPO_FINAL_MEAN)),
         (panels[1], lambda e: e.grid_min, "worst design's displacement (m)", (WALKING_DISPLACEMENT, SE_TRPO_FINAL_MIN)),
@@ -415,9 +424,9 @@ def plot_league(entries: Sequence[Entry], path: Path) -> Path:
             x, middle, low, high = seed_curves(entry.runs, value)
             if not len(x):
                 continue
-            colour = colours(i % 10)
+            colour, style = line_style(i)
             seeds = f"{len(entry.runs)} seed{'s' if len(entry.runs) != 1 else ''}"
-            axes.plot(x, middle, color=colour, label=f"{entry.name} ({seeds})")
+            axes.plot(x, middle, color=colour, linestyle=style, label=f"{entry.name} ({seeds})")
             axes.fill_between(x, low, high, color=colour, alpha=0.2, linewidth=0)
         for threshold in thresholds:
             axes.axhline(threshold, color="grey", linestyle=":", linewidth=1)

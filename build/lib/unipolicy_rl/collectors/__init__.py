@@ -1,0 +1,40 @@
+"""Where training data come from: real epochs of whole episodes, the replay buffer of real
+transitions a world model fits on, and imagined batches from a fitted world model."""
+
+from unipolicy_rl.collectors.imagination import (
+    HorizonSchedule,
+    Imagination,
+    ImaginationSettings,
+    ImaginedEpoch,
+    StoppingRule,
+    imagined_metrics,
+)
+from unipolicy_rl.collectors.real import (
+    DATA_SOURCE,
+    IMAGINED,
+    REAL,
+    RealEpochCollector,
+    ShutdownCompleteMultiSyncCollector,
+    is_imagined,
+    truncate_last_step,
+)
+from unipolicy_rl.collectors.replay import COLLECTED_IN, TransitionBuffer, transitions
+
+__all__ = [
+    "COLLECTED_IN",
+    "DATA_SOURCE",
+    "IMAGINED",
+    "REAL",
+    "HorizonSchedule",
+    "Imagination",
+    "ImaginationSettings",
+    "ImaginedEpoch",
+    "RealEpochCollector",
+    "ShutdownCompleteMultiSyncCollector",
+    "StoppingRule",
+    "TransitionBuffer",
+    "imagined_metrics",
+    "is_imagined",
+    "transitions",
+    "truncate_last_step",
+]

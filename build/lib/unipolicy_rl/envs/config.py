@@ -1,0 +1,126 @@
+"""The env a config describes: keyword arguments of :class:`~unipolicy_rl.envs.BatchedWalkerEnv`
+(``robot=vertebrate``), or a :class:`~unipolicy_rl.envs.MorphologyWalkerEnv` (``robot=grammar``).
+
+Training, evaluation and a loaded checkpoint all build their robots from here, so a policy is
+always run on the env it was trained on.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torchrl.envs import EnvBase
+
+from unipolicy_rl.envs.batched import BatchedWalkerEnv
+from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
+from unipolicy_rl.robots.grammar import Morphology, MorphologySplit
+
+GRAMMAR_SIDES = ("train", "held_out", "all")
+ROBOT_KINDS = ("vertebrate", "grammar")
+
+
+def robot_kind(cfg: DictConfig) -> str:
+    """``vertebrate`` (the thesis robot, conf/robot/vertebrate.yaml has no ``kind``) or ``grammar``."""
+    return cfg.robot.get("kind", "vertebrate")
+
+
+def env_kwargs(cfg: DictConfig) -> dict:
+    """Keyword arguments of :class:`BatchedWalkerEnv` (all but ``num_robots``) from the config."""
+    robot = cfg.robot
+    if robot_kind(cfg) != "vertebrate":
+        raise ValueError(f"robot kind {robot_kind(cfg)!r} is not the vertebrate BatchedWalkerEnv runs; "
+                         "robot=grammar builds a MorphologyWalkerEnv (make_morphology_env)")
+    return {
+        "design": instantiate(cfg.design),
+        "robot": instantiate(robot.settings, _convert_="all"),
+        "physics": instantiate(robot.physics),
+        "observation": robot.observation,
+        "append_design": robot.append_design,
+        "reward_weights": instantiate(robot.reward),
+        "episode_length": robot.episode_length,
+    }
+
+
+def grammar_morphologies(cfg: DictConfig, side: str | None = None) -> tuple[MorphologySplit, tuple[Morphology, ...]]:
+    """The config's split and one side of it: ``side``, by default ``robot.morphologies`` (the
+    side the training env draws from). The training side is cut to its first
+    ``robot.training_morphologies`` when that is set, wherever it is used (training, or the
+    evaluation of the morphologies trained on). ``robot.specialist: i`` cuts the side the
+    training env draws from to its morphology ``i`` alone, there and in an evaluation of that
+    side: a specialist run, trained and evaluated on one robot of the split (the baseline a
+    policy of many robots is measured against; ``benchmarks/morphology_table.py``)."""
+    side = cfg.robot.morphologies if side is None else side
+    if side not in GRAMMAR_SIDES:
+        raise ValueError(f"robot.morphologies must be one of {GRAMMAR_SIDES}, got {side!r}")
+    split = _split(json.dumps(OmegaConf.to_container(cfg.robot.split, resolve=True), sort_keys=True))
+    count = cfg.robot.get("training_morphologies", None)
+    if count is not None and not (isinstance(count, int) and not isinstance(count, bool)
+                                  and 1 <= count <= len(split.train)):
+        raise ValueError(f"robot.training_morphologies must be null or an integer in [1, {len(split.train)}] (the "
+                         f"split's training side), got {count!r}")
+    train = split.train if count is None else split.train[:count]
+    chosen = {"train": train, "held_out": split.held_out, "all": train + split.held_out}[side]
+    specialist = cfg.robot.get("specialist", None)
+    if specialist is not None and side == cfg.robot.morphologies:
+        if not (isinstance(specialist, int) and not isinstance(specialist, bool) and 0 <= specialist < len(chosen)):
+            raise ValueError(f"robot.specialist must be null or an index in [0, {len(chosen) - 1}] of the "
+                             f"{len(chosen)} morphologies of robot.morphologies={cfg.robot.morphologies}, "
+                             f"got {specialist!r}")
+        chosen = (chosen[specialist],)
+    return split, chosen
+
+
+@functools.lru_cache(maxsize=4)
+def _split(settings: str) -> MorphologySplit:
+    """The split of ``settings`` (the resolved ``robot.split`` as JSON). Drawing it builds and
+    checks hundreds of robots (seconds), and the same settings always give the same split, so a
+    process draws each once (validation, the probe, the collector and the evaluation share it)."""
+    # Built as a partial and called here, so a bad split raises its own ValueError naming the
+    # value rather than Hydra's wrapper.
+    return instantiate(OmegaConf.create(json.loads(settings)), _convert_="all", _partial_=True)()
+
+
+def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
+    """Keyword arguments of :class:`MorphologyWalkerEnv` (all but ``num_robots``) for the
+    morphologies of ``side`` (default ``robot.morphologies``). Unset ``max_links`` pads to the
+    most links any robot of the split's size limits may have, so held-out robots fit the same
+    tokens (and a padded-MLP policy, whose weights are tied to the padding, runs on every side)."""
+    if robot_kind(cfg) != "grammar":
+        raise ValueError(f"a MorphologyWalkerEnv needs robot=grammar, got robot kind {robot_kind(cfg)!r}")
+    robot = cfg.robot
+    _, morphologies = grammar_morphologies(cfg, side)
+    limits = instantiate(robot.split.train_limits, _convert_="all"), instantiate(robot.split.held_out_limits,
+                                                                                 _convert_="all")
+    max_links = robot.max_links if robot.max_links is not None else max(limit.max_links for limit in limits)
+    return {
+        "morphologies": morphologies,
+        "max_links": max_links,
+        "design": instantiate(cfg.design),
+        "physics": instantiate(robot.physics),
+        "reward_weights": instantiate(robot.reward),
+        "episode_length": robot.episode_length,
+        "sampling": robot.sampling,
+        "driven_joints": None if robot.driven_joints is None else tuple(robot.driven_joints),
+        "design_in_tokens": robot.design_in_tokens,
+    }
+
+
+def make_morphology_env(cfg: DictConfig, num_robots: int) -> MorphologyWalkerEnv:
+    """The ``robot=grammar`` env of ``num_robots`` robots (:func:`morphology_env_kwargs`)."""
+    return MorphologyWalkerEnv(num_robots, **morphology_env_kwargs(cfg))
+
+
+def env_builder(cfg: DictConfig) -> tuple[type[EnvBase], dict]:
+    """The env class the config's robot runs in and its keyword arguments (all but ``num_robots``):
+    :class:`BatchedWalkerEnv` and :func:`env_kwargs` for ``robot=vertebrate``,
+    :class:`MorphologyWalkerEnv` and :func:`morphology_env_kwargs` for ``robot=grammar``. Both
+    are plain picklable values, so collector worker processes and Ray actors build the same env."""
+    kind = robot_kind(cfg)
+    if kind not in ROBOT_KINDS:
+        raise ValueError(f"robot.kind must be one of {ROBOT_KINDS}, got {kind!r}")
+    if kind == "grammar":
+        return MorphologyWalkerEnv, morphology_env_kwargs(cfg)
+    return BatchedWalkerEnv, env_kwargs(cfg)

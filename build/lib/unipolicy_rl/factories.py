@@ -1,0 +1,295 @@
+"""``make_*`` factories that turn the Hydra config into the training run's parts (TorchRL sota style).
+
+train.py builds everything here: the real collector, the learner (``algo``), and for a
+model-based source the world model, its trainer, the replay buffer and the imagination. The
+policy alone (what a checkpoint hands over) is built in :mod:`unipolicy_rl.policy`, and the env
+in :mod:`unipolicy_rl.envs.config`, so loading a policy needs none of this module.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import EnvBase, RewardSum, TransformedEnv
+
+from unipolicy_rl.collectors import (
+    Imagination,
+    RealEpochCollector,
+    ShutdownCompleteMultiSyncCollector,
+    TransitionBuffer,
+    truncate_last_step,
+)
+from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
+from unipolicy_rl.envs import BatchedWalkerEnv
+from unipolicy_rl.envs.config import env_builder, morphology_env_kwargs
+from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
+from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
+from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
+from unipolicy_rl.learners.off_policy import check_model_based_imagination
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
+from unipolicy_rl.observation_statistics import ObservationStatistics
+from unipolicy_rl.policy import (
+    TOKEN_POLICIES,
+    make_actor_critic,
+    make_collecting_policy,
+    make_observation_norm,
+    make_policy_actor,
+    make_token_actor_critic,
+    make_token_norm,
+    policy_architecture,
+)
+from unipolicy_rl.token_statistics import TokenObservationStatistics
+from unipolicy_rl.validation import check_settings
+from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout, check_background_fit
+from unipolicy_rl.world_models.token_layout import TOKEN_STATE
+from unipolicy_rl.world_models.trainer import Trainer
+
+# ``source.kind``: real data only, or a world model fitted to them.
+SOURCE_KINDS = ("real", "model")
+
+
+def training_env(num_robots: int, ignore_signals: bool = False, env_class: type[EnvBase] = BatchedWalkerEnv,
+                 **kwargs) -> TransformedEnv:
+    """One process's robots (``env_class(num_robots, **kwargs)``), with TorchRL's episode-reward tracking.
+
+    In a collector worker (``ignore_signals``) Ctrl-C and a scheduler's SIGTERM, which reach
+    every process of the job, are ignored: the trainer alone decides when to stop, after the
+    epoch in progress. A worker still exits when the trainer goes (its pipe closes).
+    """
+    if ignore_signals:
+        for number in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(number, signal.SIG_IGN)
+    return TransformedEnv(env_class(num_robots, **kwargs), RewardSum())
+
+
+def robots_per_worker(cfg: DictConfig) -> int:
+    # validation's rules for the two keys (a direct caller may not have run validate_config).
+    check_settings(cfg, "episodes_per_epoch", "workers")
+    return cfg.episodes_per_epoch // cfg.workers
+
+
+def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
+                   full_state: bool = False) -> Collector | MultiSyncCollector:
+    """One epoch (``episodes_per_epoch`` robots x ``episode_length`` steps) per iteration.
+
+    ``workers`` processes each step their share of the robots *and* run the policy on them
+    (TorchRL's ``MultiSyncCollector``, weights shared through memory), so the trainer does no
+    per-step work; ``workers=1`` collects in this process. With ``collector.backend=ray`` the
+    workers are Ray actors instead (TorchRL's ``RayCollector``), on a local cluster or on the one
+    at ``collector.ray_address``.
+
+    An epoch is one episode of every robot. The collector's post-processing marks its last
+    step truncated and the trainer resets every robot at the start of the next epoch, so
+    the envs themselves set no time limit: a limit would make the collector rebuild every
+    robot at the end of an epoch only for that reset to rebuild them again. A physics fault
+    still ends an episode early, and that robot restarts at once.
+
+    ``full_state`` adds the robots' full state (``state``) to every step, for a world model.
+    The env is the config's robot's (:func:`~unipolicy_rl.envs.config.env_builder`): the
+    vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``, whose
+    link tokens already hold every link's state (a world model reads them; ``full_state`` adds
+    nothing there).
+    """
+    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
+    env_class, kwargs = env_builder(cfg)
+    kwargs = {**kwargs, "episode_length": None}
+    if env_class is BatchedWalkerEnv:
+        kwargs["full_state"] = full_state
+    else:
+        kwargs["env_class"] = env_class
+    # The policy needs no env transform (its normaliser is inside it): say so, which also
+    # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
+    common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
+              "postproc": truncate_last_step, "auto_register_policy_transforms": False}
+    if cfg.collector.backend == "ray":  # one Collector per Ray actor (TorchRL's RayCollector)
+        make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
+        return make_epoch_ray_collector([make_worker_env] * cfg.workers, policy, frames_per_batch=frames_per_batch,
+                                        total_frames=common["total_frames"], postproc=truncate_last_step,
+                                        address=cfg.collector.ray_address)
+    if cfg.workers == 1:
+        return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
+    make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
+    return ShutdownCompleteMultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
+
+
+def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool) -> RealEpochCollector:
+    """Real epochs of whole episodes, reseeded per epoch; ``full_state`` adds the robots' full
+    state to every step (what a world model fits on)."""
+    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
+    return RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=full_state), cfg.seed, cfg.epochs,
+                              frames_per_batch)
+
+
+@dataclass
+class WorldModelParts:
+    """What a model-based run adds to a real one: the dynamics, the trainer that fits them, the
+    replay buffer of real transitions they fit on, and the imagination that rolls the policy
+    through them."""
+
+    model: Dynamics
+    trainer: Trainer
+    buffer: TransitionBuffer
+    imagination: Imagination
+
+
+def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
+    """``world_model`` (model and trainer) and ``imagination`` (settings and stopping rule) of a model source."""
+    model = make_dynamics_model(cfg, action_dim)
+    layout = model.layout
+    settings = instantiate(cfg.imagination)
+    env_class, kwargs = env_builder(cfg)
+    if env_class is BatchedWalkerEnv:
+        kwargs["full_state"] = True
+    reference_env = env_class(1, **kwargs)
+    reference_env.close()  # only its specs are read
+    imagination = Imagination(model, reference_env, instantiate(cfg.robot.reward), settings, cfg.seed,
+                              cfg.robot.episode_length)
+    buffer = TransitionBuffer(settings.buffer_capacity, layout.from_full, model.memory_of, layout.state_key,
+                              layout.build_keys)
+    trainer = instantiate(cfg.world_model.trainer)
+    if settings.background_fit:
+        check_background_fit(trainer)
+    return WorldModelParts(model, trainer, buffer, imagination)
+
+
+def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout:
+    """What the world model's state holds (``world_model.model_state``): the vertebrate's
+    ``full`` or ``thesis`` state for its observation, or for ``robot=grammar`` every link's
+    token (``tokens``, padded to the env's ``max_links``)."""
+    if cfg.world_model.model_state == TOKEN_STATE:
+        check_settings(cfg, "robot", "source.kind", "world_model")  # validation's rule: tokens need robot=grammar
+        return TokenLayout(morphology_env_kwargs(cfg)["max_links"])
+    robot = cfg.robot
+    return StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
+                               cfg.world_model.model_state)
+
+
+def make_dynamics_model(cfg: DictConfig, action_dim: int | None = None,
+                        device: torch.device | str | None = None) -> Dynamics:
+    """The world model's dynamics (``world_model.model``), sized for the robot and observation
+    (:func:`model_layout`; ``action_dim`` by default the robot's: the vertebrate's actuated
+    joints, or a grammar robot's token slots), on ``device`` (default: the config's). ``cfg``
+    has a ``world_model`` (validate_config's check)."""
+    layout = model_layout(cfg)
+    if action_dim is None:
+        action_dim = layout.max_links if isinstance(layout, TokenLayout) else len(cfg.robot.settings.actuated)
+    # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
+    device = resolve_device(cfg.device) if device is None else torch.device(device)
+    with torch.device(device):
+        return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``device`` of the config: ``cpu``, ``cuda[:N]``, or ``auto`` (a GPU when there is one).
+
+    It places the world model (its fit and its predictions); the policy, the critic and the
+    robots stay on the CPU, where their small networks run fastest next to the physics.
+    """
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name!r} but torch sees no CUDA GPU here; use device=cpu or device=auto")
+    return device
+
+
+def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> TRPOLearner:
+    """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser.
+
+    For a token policy (``policy=token_transformer|token_mlp``, on ``robot=grammar``) the sizes are
+    the features per token and the padded number of tokens (:func:`probe_dimensions`); the
+    normaliser is a ``TokenNorm`` whose statistics count real tokens only.
+    """
+    algo = cfg.algo
+    if policy_architecture(cfg) in TOKEN_POLICIES:
+        actor, critic = make_token_actor_critic(cfg, observation_dim, action_dim)
+        normalizer, statistics = make_token_norm(observation_dim), TokenObservationStatistics(observation_dim)
+        statistics_keys = (TOKENS, TOKEN_MASK)
+    else:
+        actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
+        normalizer, statistics = make_observation_norm(observation_dim), ObservationStatistics(observation_dim)
+        statistics_keys = ("observation",)
+    loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage)
+    loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
+    updater = TRPOUpdater(
+        loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
+        critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
+    )
+    return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor), statistics,
+                       algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)
+
+
+def off_policy_settings(cfg: DictConfig) -> OffPolicySettings:
+    """An off-policy learner's settings from ``algo`` (its ``name`` is the loss; the actor's own
+    keys belong to the policy)."""
+    fields = {field.name for field in dataclasses.fields(OffPolicySettings)} - {"loss"}
+    algo = OmegaConf.to_container(cfg.algo, resolve=True)
+    settings = {key: tuple(value) if isinstance(value, list) else value for key, value in algo.items() if key in fields}
+    return OffPolicySettings(loss=cfg.algo.name, **settings)
+
+
+def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> OffPolicyLearner:
+    """SAC, CrossQ or REDQ from ``algo``: the tanh-Gaussian actor, TorchRL's loss, critics and replay
+    buffer; on a model source, MBPO's (a model buffer beside the real one)."""
+    model_based = cfg.source.kind == "model"
+    if model_based:
+        check_model_based_imagination(instantiate(cfg.imagination))
+    actor = make_policy_actor(cfg, observation_dim, action_dim)
+    normalizer = make_observation_norm(observation_dim)
+    return OffPolicyLearner(off_policy_settings(cfg), actor, normalizer, make_collecting_policy(normalizer, actor),
+                            ObservationStatistics(observation_dim), observation_dim, action_dim, model_based)
+
+
+# ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
+LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
+    "trpo": make_trpo_learner,
+    **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
+}
+
+
+def learner_settings(cfg: DictConfig) -> TrustRegion | OffPolicySettings:
+    """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
+    return make_trust_region(cfg) if cfg.algo.name == "trpo" else off_policy_settings(cfg)
+
+
+def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:
+    """The learner ``algo.name`` names, sized for the env."""
+    check_settings(cfg, "algo.name")  # validation's rule (a direct caller may not have run validate_config)
+    return LEARNERS[cfg.algo.name](cfg, observation_dim, action_dim)
+
+
+def make_trust_region(cfg: DictConfig) -> TrustRegion:
+    algo = cfg.algo
+    # (a config from before fisher_fraction computes the Fisher product on the whole batch, as it did)
+    return TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
+                       backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
+                       fisher_fraction=algo.get("fisher_fraction", 1.0))
+
+
+def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:
+    """The policy's sizes for the configured robot (one robot built and closed): the flat
+    observation and action sizes of the vertebrate, or for ``robot=grammar`` the features per
+    link token ``F`` and the padded number of tokens ``L`` (one action slot per token). A
+    checkpoint keeps them as ``observation_dim`` and ``action_dim``."""
+    env_class, kwargs = env_builder(cfg)
+    probe = env_class(1, **kwargs)
+    if env_class is BatchedWalkerEnv:
+        dims = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    else:
+        dims = tuple(probe.observation_spec[TOKENS].shape[-2:])[::-1]
+    probe.close()
+    return dims

@@ -1,0 +1,192 @@
+"""Policy and value networks for TRPO, built as TorchRL modules.
+
+Both factories return ordinary TorchRL operators (``ProbabilisticActor``, ``ValueOperator``)
+so that collectors, value estimators and :class:`~unipolicy_rl.objectives.TRPOLoss` can use
+them without adapters. The defaults (64x64 tanh, orthogonal initialisation, state-independent
+log-std starting at 0) are the ones used by stable-baselines3 and CleanRL for on-policy
+continuous control, so results are comparable with theirs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import AddStateIndependentNormalScale, NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import TensorSpec
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import BatchRenorm1d, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
+
+__all__ = ["ACTIVATIONS", "make_actor", "make_critic", "make_mlp", "make_q_network", "make_tanh_actor"]
+
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "elu": nn.ELU,
+    "silu": nn.SiLU,
+}
+
+
+def make_mlp(
+    in_features: int,
+    out_features: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    output_gain: float = 1.0,
+) -> nn.Sequential:
+    """A plain ``nn.Sequential`` MLP with orthogonal initialisation.
+
+    Hidden layers use gain sqrt(2) and zero bias (the PPO/TRPO "implementation details" that
+    keep early activations in tanh's linear range); the output layer takes ``output_gain``
+    so the policy can start near a zero mean (small gain) while the critic keeps full scale.
+    An empty ``hidden_sizes`` gives a single linear layer (a linear policy).
+    """
+    try:
+        activation_class = ACTIVATIONS[activation]
+    except KeyError as err:
+        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
+    layers: list[nn.Module] = []
+    width = in_features
+    for hidden in hidden_sizes:
+        layers += [_orthogonal_linear(width, hidden, gain=math.sqrt(2.0)), activation_class()]
+        width = hidden
+    layers.append(_orthogonal_linear(width, out_features, gain=output_gain))
+    return nn.Sequential(*layers)
+
+
+def make_actor(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    init_log_std: float = 0.0,
+    *,
+    observation_key: str = "observation",
+    action_spec: TensorSpec | None = None,
+) -> ProbabilisticActor:
+    """Gaussian policy ``observation -> (loc, scale) -> action`` with a state-independent std.
+
+    Why this shape:
+
+    * The log-std is a free parameter vector (``AddStateIndependentNormalScale``), not a network
+      output. It is a real ``nn.Parameter`` of the actor, so TRPO's natural-gradient step moves
+      it together with the mean (a known TRPO bug is a log-std that silently stays out of the
+      optimised parameters).
+    * ``IndependentNormal`` (untransformed Gaussian, no tanh squashing) keeps the KL between
+      policies analytic, which TRPO's Fisher-vector product and trust-region check rely on.
+      The environment clips actions to its bounds.
+    * ``return_log_prob=True`` stores ``action_log_prob`` and the ``loc``/``scale`` of the
+      behaviour policy in every collected step; the loss needs both (importance ratio and the
+      KL to the old policy).
+    * ``init_log_std=0`` (std 1) matches stable-baselines3 and CleanRL defaults.
+    * Exploration is on by default (actions are sampled); evaluate deterministically (the
+      mean) under ``torchrl.envs.utils.set_exploration_type(ExplorationType.DETERMINISTIC)``.
+    """
+    mean_network = make_mlp(observation_dim, action_dim, hidden_sizes, activation, output_gain=0.01)
+    log_std = AddStateIndependentNormalScale(action_dim, scale_mapping="exp", init_value=init_log_std)
+    parameters_module = TensorDictModule(
+        nn.Sequential(mean_network, log_std),
+        in_keys=[observation_key],
+        out_keys=["loc", "scale"],
+    )
+    return ProbabilisticActor(
+        parameters_module,
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=IndependentNormal,
+        return_log_prob=True,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def make_critic(
+    observation_dim: int,
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    *,
+    observation_key: str = "observation",
+) -> ValueOperator:
+    """State-value network ``observation -> state_value`` for GAE and the critic loss.
+
+    Kept separate from the actor (no shared trunk) so the critic's Adam updates cannot move the
+    policy outside the trust region TRPO just enforced.
+    """
+    return ValueOperator(
+        make_mlp(observation_dim, 1, hidden_sizes, activation, output_gain=1.0),
+        in_keys=[observation_key],
+    )
+
+
+def make_tanh_actor(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (256, 256),
+    activation: str = "relu",
+    *,
+    observation_key: str = "observation",
+) -> ProbabilisticActor:
+    """Tanh-Gaussian policy ``observation -> (loc, scale) -> tanh(sample)`` in ``[-1, 1]``, for SAC-style learners.
+
+    The network outputs the mean and the (softplus-mapped) std of a Gaussian per action; the
+    sample is squashed by tanh into the env's bounds, and its log-probability carries the
+    change-of-variables term (TorchRL's ``TanhNormal``). The deterministic action, for
+    evaluation, is ``tanh(loc)``.
+    """
+    network = nn.Sequential(make_mlp(observation_dim, 2 * action_dim, hidden_sizes, activation, output_gain=0.01),
+                            NormalParamExtractor())
+    return ProbabilisticActor(
+        TensorDictModule(network, in_keys=[observation_key], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+        return_log_prob=True,
+        default_interaction_type=ExplorationType.RANDOM,
+    )
+
+
+def make_q_network(
+    observation_dim: int,
+    action_dim: int,
+    hidden_sizes: Sequence[int] = (256, 256),
+    activation: str = "relu",
+    batch_renorm: bool = False,
+    *,
+    observation_key: str = "observation",
+) -> ValueOperator:
+    """Action-value network ``(observation, action) -> state_action_value``.
+
+    ``batch_renorm`` puts batch renormalisation (TorchRL's ``BatchRenorm1d``) after the input
+    and every hidden layer, as CrossQ does so that it can drop the target network.
+    """
+    try:
+        activation_class = ACTIVATIONS[activation]
+    except KeyError as err:
+        raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
+    layers: list[nn.Module] = [BatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
+    width = observation_dim + action_dim
+    for hidden in hidden_sizes:
+        layers += [nn.Linear(width, hidden), *([BatchRenorm1d(hidden)] if batch_renorm else []), activation_class()]
+        width = hidden
+    layers.append(nn.Linear(width, 1))
+    return ValueOperator(_Concatenated(nn.Sequential(*layers)), in_keys=[observation_key, "action"],
+                         out_keys=["state_action_value"])
+
+
+class _Concatenated(nn.Module):
+    """Applies ``network`` to its inputs concatenated on the last dimension."""
+
+    def __init__(self, network: nn.Module) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, *inputs):
+        return self.network(torch.cat(inputs, dim=-1))
+
+
+def _orthogonal_linear(in_features: int, out_features: int, gain: float) -> nn.Linear:
+    layer = nn.Linear(in_features, out_features)
+    nn.init.orthogonal_(layer.weight, gain=gain)
+    nn.init.zeros_(layer.bias)
+    return layer

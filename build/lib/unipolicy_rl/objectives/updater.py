@@ -1,0 +1,90 @@
+"""The full TRPO update: advantage, one natural-gradient policy step, then the critic fit."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from unipolicy_rl.objectives.critic_fit import CriticFitResult, explained_variance, fit_critic, make_critic_optimizer
+from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
+from unipolicy_rl.objectives.trpo import TRPOLoss
+
+__all__ = ["TRPOUpdater"]
+
+
+class TRPOUpdater:
+    """One full TRPO update per call: advantage, natural-gradient policy step, critic fit.
+
+    Keeps the critic's Adam state across updates. ``update(batch)`` takes a collected batch
+    shaped ``[*envs, time]`` (time last, as TorchRL's GAE expects) and returns flat float
+    metrics named ``train/...`` (the same names on every call, so they can be rows of a
+    table); the last :class:`TRPOStepResult` and :class:`CriticFitResult`, with their skip
+    reasons, are kept in ``last_step`` and ``last_critic_fit``.
+
+    ``consecutive_skips`` (also the metric ``train/consecutive_skips``) counts the updates in
+    a row, up to and including the last, in which the policy step was not accepted (any
+    ``skip_reason``, a failed line search included) or the critic fit was skipped; an update
+    with both an accepted step and a fitted critic resets it to 0. Each skip leaves the
+    parameters untouched, so a run whose count keeps growing has stopped learning (e.g. its
+    returns went non-finite): a training loop can stop it past a limit, with
+    :attr:`skip_reasons` for the message.
+
+    The policy step takes its settings from ``trust_region`` (default :class:`TrustRegion`); the critic defaults (Adam
+    ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib.
+    """
+
+    def __init__(
+        self,
+        loss_module: TRPOLoss,
+        *,
+        trust_region: TrustRegion | None = None,
+        critic_lr: float = 1e-3,
+        critic_epochs: int = 10,
+        critic_minibatch_size: int = 128,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        self.loss_module = loss_module
+        self.trust_region = trust_region or TrustRegion()
+        self.critic_optimizer = make_critic_optimizer(loss_module, critic_lr)
+        self.critic_epochs = critic_epochs
+        self.critic_minibatch_size = critic_minibatch_size
+        self.generator = generator
+        self.last_step: TRPOStepResult | None = None
+        self.last_critic_fit: CriticFitResult | None = None
+        self.consecutive_skips = 0
+
+    @property
+    def skip_reasons(self) -> list[str]:
+        """Why the last update skipped its policy step and/or critic fit (empty if neither)."""
+        reasons = []
+        if self.last_step is not None and not self.last_step.accepted:
+            reasons.append(f"policy step: {self.last_step.skip_reason}")
+        if self.last_critic_fit is not None and not self.last_critic_fit.fitted:
+            reasons.append(f"critic fit: {self.last_critic_fit.skip_reason}")
+        return reasons
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """Update policy and critic on ``batch`` (advantage keys are written into it)."""
+        loss = self.loss_module
+        loss.compute_advantage(batch)
+        flat = batch.reshape(-1)
+        advantage = loss.advantage(flat)
+        step = natural_gradient_step(loss, flat, advantage=advantage, trust_region=self.trust_region)
+        self.last_step = step
+        metrics = step.as_metrics("train/")
+        metrics["train/explained_variance"] = explained_variance(
+            flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
+        )
+        critic_fit = fit_critic(
+            loss,
+            flat,
+            self.critic_optimizer,
+            self.critic_epochs,
+            self.critic_minibatch_size,
+            self.generator,
+        )
+        self.last_critic_fit = critic_fit
+        metrics.update(critic_fit.as_metrics("train/"))
+        self.consecutive_skips = 0 if step.accepted and critic_fit.fitted else self.consecutive_skips + 1
+        metrics["train/consecutive_skips"] = float(self.consecutive_skips)
+        return metrics

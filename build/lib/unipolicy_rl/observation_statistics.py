@@ -1,0 +1,138 @@
+"""Running mean and spread of observations, merged one epoch at a time.
+
+The policy normalises its input with TorchRL's ``ObservationNorm``, whose ``loc`` and
+``scale`` stay fixed for a whole epoch and are refreshed from these statistics between
+epochs, as OpenAI baselines' TRPO did. A fixed normaliser keeps the behaviour policy one
+function per epoch (what the importance ratios and the trust region assume), lets it run
+inside the collector's worker processes with the policy weights, and costs a subtraction and
+a division per step instead of a statistics update in every env step.
+
+A refresh changes what the networks see, so by itself it changes the policy that runs by an
+amount the trust region never bounds (the first refresh jumps from the identity to real
+statistics; a coordinate at the scale floor is multiplied by up to 1/MIN_SCALE).
+:func:`refresh_normalizer` therefore re-expresses the first layer of each network reading the
+normalised observation in the new coordinates, so the refresh leaves every network's output
+exactly as it was and only the parameterisation (what the next natural-gradient step and the
+critic's Adam see) moves to the new statistics.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torchrl.envs.transforms import ObservationNorm
+
+# A coordinate that has not varied yet (or never does) is divided by this, not by ~0.
+MIN_SCALE = 1e-3
+# How a refresh treats the networks behind the normaliser (config ``algo.normalizer_refresh``):
+# "preserve" re-expresses their first layers so their outputs do not change; "jump" only moves
+# the normaliser (OpenAI baselines' TRPO), changing the policy by an unbounded amount.
+REFRESH_MODES = ("preserve", "jump")
+
+
+class ObservationStatistics:
+    """Count, mean and sum of squared deviations of every observation seen so far.
+
+    Batches merge exactly (Chan et al.'s parallel update, in float64), so the result does
+    not depend on how the observations were split into epochs.
+    """
+
+    def __init__(self, size: int) -> None:
+        if not (isinstance(size, int) and size >= 1):
+            raise ValueError(f"size must be a positive integer, got {size!r}")
+        self.size = size
+        self.count = 0
+        self.mean = torch.zeros(size, dtype=torch.float64)
+        self.squared_deviations = torch.zeros(size, dtype=torch.float64)
+
+    def update(self, observations: torch.Tensor) -> None:
+        """Merges a batch shaped ``[..., size]``."""
+        if observations.shape[-1:] != (self.size,):
+            raise ValueError(f"observations must end in size {self.size}, got shape {tuple(observations.shape)}")
+        rows = observations.reshape(-1, self.size).to(torch.float64)
+        if not torch.isfinite(rows).all():
+            raise ValueError("observations must be finite")
+        n = rows.shape[0]
+        if n == 0:
+            return
+        batch_mean = rows.mean(0)
+        batch_deviations = ((rows - batch_mean) ** 2).sum(0)
+        total = self.count + n
+        delta = batch_mean - self.mean
+        self.mean = self.mean + delta * (n / total)
+        self.squared_deviations = self.squared_deviations + batch_deviations + delta**2 * (self.count * n / total)
+        self.count = total
+
+    @property
+    def loc(self) -> torch.Tensor:
+        return self.mean.to(torch.float32)
+
+    @property
+    def scale(self) -> torch.Tensor:
+        """Standard deviation (population), floored at :data:`MIN_SCALE`; ones before any data."""
+        if self.count == 0:
+            return torch.ones(self.size)
+        return (self.squared_deviations / self.count).sqrt().clamp_min(MIN_SCALE).to(torch.float32)
+
+    def copy_to(self, normalizer: ObservationNorm) -> None:
+        """Writes ``loc`` and ``scale`` into ``normalizer`` in place (so shared copies see them)."""
+        normalizer.loc.copy_(self.loc)
+        normalizer.scale.copy_(self.scale)
+
+    def state_dict(self) -> dict:
+        return {"count": self.count, "mean": self.mean.clone(), "squared_deviations": self.squared_deviations.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["mean"].shape != (self.size,):
+            raise ValueError(f"statistics are for size {tuple(state['mean'].shape)}, expected ({self.size},)")
+        self.count = int(state["count"])
+        self.mean = state["mean"].to(torch.float64).clone()
+        self.squared_deviations = state["squared_deviations"].to(torch.float64).clone()
+
+
+def refresh_normalizer(statistics: ObservationStatistics, normalizer: ObservationNorm,
+                       networks: tuple[nn.Module, ...] = (), mode: str = "preserve") -> None:
+    """Moves ``normalizer`` to the current ``statistics``; with ``mode="preserve"`` each of
+    ``networks`` (whose first ``nn.Linear`` reads the normalised observation) is rewritten so
+    its output on any raw observation stays the same.
+
+    With ``z = W (o - m0) / s0 + b`` before and ``(m1, s1)`` the new statistics, the same ``z``
+    is ``W' (o - m1) / s1 + b'`` for ``W' = W diag(s1 / s0)`` and ``b' = b + W (m1 - m0) / s0``.
+    """
+    if mode not in REFRESH_MODES:
+        raise ValueError(f"normalizer_refresh must be one of {REFRESH_MODES}, got {mode!r}")
+    old_loc, old_scale = normalizer.loc.detach().clone(), normalizer.scale.detach().clone()
+    statistics.copy_to(normalizer)
+    if mode == "jump":
+        return
+    new_loc, new_scale = normalizer.loc.detach(), normalizer.scale.detach()
+    for network in networks:
+        reader = _input_reader(network)
+        if isinstance(reader, nn.Linear):
+            reexpress_linear(reader, old_loc, old_scale, new_loc, new_scale)
+        else:
+            reader.reexpress_input(old_loc, old_scale, new_loc, new_scale)
+
+
+def reexpress_linear(layer: nn.Linear, old_loc: torch.Tensor, old_scale: torch.Tensor, new_loc: torch.Tensor,
+                     new_scale: torch.Tensor) -> None:
+    """Rewrites ``layer``, which reads ``(o - old_loc) / old_scale``, to give the same output on
+    ``(o - new_loc) / new_scale``: ``W' = W diag(s1 / s0)``, ``b' = b + W (m1 - m0) / s0``."""
+    if layer.in_features != old_loc.numel():
+        raise ValueError(f"the first layer reads {layer.in_features} inputs, the normaliser {old_loc.numel()}")
+    with torch.no_grad():
+        weight = layer.weight.double()
+        shift = ((new_loc - old_loc) / old_scale).double()
+        if layer.bias is not None:
+            layer.bias.add_((weight @ shift).to(layer.bias.dtype))
+        layer.weight.copy_((weight * (new_scale / old_scale).double()).to(layer.weight.dtype))
+
+
+def _input_reader(network: nn.Module):
+    """What reads the normalised input in ``network``: the first submodule that says how to
+    re-express itself (``reexpress_input(old_loc, old_scale, new_loc, new_scale)``, as the token
+    networks of :mod:`unipolicy_rl.token_networks` do), else its first ``nn.Linear``."""
+    for module in network.modules():
+        if hasattr(module, "reexpress_input") or isinstance(module, nn.Linear):
+            return module
+    raise ValueError(f"{type(network).__name__} has no nn.Linear layer to re-express")

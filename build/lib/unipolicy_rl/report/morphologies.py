@@ -1,0 +1,181 @@
+"""One policy for many robots against a specialist per robot: the table of issue 23, from run folders.
+
+A *specialist* run trains on one morphology of the grammar's split (``robot.specialist``); a
+*universal* run on the first ``robot.training_morphologies`` of its training side (all of them
+when unset). Both write their final evaluation per morphology to
+``evaluation/morphologies.csv`` (the deterministic policy on the ``evaluation.grid`` design grid,
+one row per morphology, its derivation included), which is all this module reads, beside the
+run's config. Morphologies are matched by their derivation, so a specialist and a universal
+policy are compared on the same robot whatever its index on either side.
+
+Per universal entry (its policy and how many morphologies it trained on) and morphology: the
+universal policy's grid mean displacement over the specialist's (the median over specialist
+seeds, when there are several). Then per entry: the median of that ratio over the morphologies
+it trained on and over the held-out ones (zero-shot), and how many of its training
+morphologies it walks (grid mean >= ``WALKS`` m).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from unipolicy_rl.report.runs import Run
+
+MORPHOLOGIES_CSV = Path("evaluation") / "morphologies.csv"
+WALKS = 1.0  # m of grid mean displacement: a morphology the policy walks
+TRAINED, HELD_OUT, UNTRAINED = "trained", "held_out", "train side, not trained on"
+
+
+@dataclass(frozen=True)
+class MorphologyScore:
+    """One morphology's final evaluation in one run (a row of ``evaluation/morphologies.csv``)."""
+
+    derivation: str
+    links: int
+    mean_displacement: float
+    worst_displacement: float
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A universal entry against the specialists on one morphology."""
+
+    entry: str
+    derivation: str
+    side: str
+    links: int
+    universal: float
+    specialist: float | None  # the specialists' median grid mean; None when no specialist ran on it
+
+    @property
+    def ratio(self) -> float:
+        """universal / specialist grid mean; NaN without a specialist or where it does not move forward."""
+        if self.specialist is None or not self.specialist > 0:
+            return math.nan
+        return self.universal / self.specialist
+
+
+@dataclass(frozen=True)
+class EntrySummary:
+    entry: str
+    trained_ratio: float      # median over trained morphologies with a specialist
+    held_out_ratio: float     # median over held-out morphologies with a specialist
+    trained_compared: int
+    held_out_compared: int
+    trained_walking: int      # trained morphologies with grid mean >= WALKS
+    trained: int
+    held_out_mean: float      # median grid mean over the held-out morphologies (with or without specialists)
+
+
+def final_scores(run: Run) -> list[MorphologyScore]:
+    """The run's final evaluation per morphology (the last row of each derivation: an evaluation
+    rerun appends); empty when the run has none."""
+    path = run.path / MORPHOLOGIES_CSV
+    if not path.is_file():
+        return []
+    with path.open(newline="") as file:
+        rows = {row["derivation"]: row for row in csv.DictReader(file)}
+    return [MorphologyScore(derivation, int(row["links"]), float(row["mean_forward_displacement"]),
+                            float(row["min_forward_displacement"])) for derivation, row in rows.items()]
+
+
+def is_grammar_run(run: Run) -> bool:
+    return bool(run.config) and (run.config.get("robot") or {}).get("kind") == "grammar"
+
+
+def is_specialist(run: Run) -> bool:
+    return is_grammar_run(run) and run.config["robot"].get("specialist") is not None
+
+
+def entry_name(run: Run) -> str:
+    """A universal run's entry: its policy and the number of morphologies it trained on."""
+    robot = run.config["robot"]
+    count = robot.get("training_morphologies")
+    return f"{run.config['policy']['name']}, {'all' if count is None else count} morphologies"
+
+
+def split_sides(run: Run) -> dict[str, str]:
+    """Each derivation of the run's split -> trained / held_out / train side, not trained on."""
+    # Imported here: drawing a split builds robots, which only this question needs.
+    from unipolicy_rl.envs.config import grammar_morphologies
+
+    config = OmegaConf.create({**run.config, "robot": {**run.config["robot"], "specialist": None}})
+    split, trained = grammar_morphologies(config, "train")
+    sides = {" ".join(morphology.derivation()): UNTRAINED for morphology in split.train}
+    sides.update({" ".join(morphology.derivation()): TRAINED for morphology in trained})
+    sides.update({" ".join(morphology.derivation()): HELD_OUT for morphology in split.held_out})
+    return sides
+
+
+def compare(runs: Iterable[Run], sides_of=split_sides) -> list[Comparison]:
+    """Every universal run's final score on every morphology, beside the specialists' median on it."""
+    runs = [run for run in runs if is_grammar_run(run)]
+    specialists: dict[str, list[float]] = defaultdict(list)
+    for run in filter(is_specialist, runs):
+        for score in final_scores(run):
+            specialists[score.derivation].append(score.mean_displacement)
+    comparisons = []
+    for run in runs:
+        if is_specialist(run):
+            continue
+        sides = sides_of(run)
+        for score in final_scores(run):
+            found = specialists.get(score.derivation)
+            comparisons.append(Comparison(entry_name(run), score.derivation, sides.get(score.derivation, UNTRAINED),
+                                          score.links, score.mean_displacement,
+                                          statistics.median(found) if found else None))
+    return comparisons
+
+
+def _median(values: Sequence[float]) -> float:
+    values = [value for value in values if not math.isnan(value)]
+    return statistics.median(values) if values else math.nan
+
+
+def summarize(comparisons: Sequence[Comparison]) -> list[EntrySummary]:
+    """Per entry (in order of first appearance): the medians and counts of the module docstring.
+    An entry with several seeds pools their morphologies."""
+    entries: dict[str, list[Comparison]] = defaultdict(list)
+    for comparison in comparisons:
+        entries[comparison.entry].append(comparison)
+    summaries = []
+    for entry, rows in entries.items():
+        trained = [row for row in rows if row.side == TRAINED]
+        held_out = [row for row in rows if row.side == HELD_OUT]
+        summaries.append(EntrySummary(
+            entry,
+            _median([row.ratio for row in trained]), _median([row.ratio for row in held_out]),
+            sum(not math.isnan(row.ratio) for row in trained), sum(not math.isnan(row.ratio) for row in held_out),
+            sum(row.universal >= WALKS for row in trained), len(trained),
+            _median([row.universal for row in held_out])))
+    return summaries
+
+
+def format_table(comparisons: Sequence[Comparison], summaries: Sequence[EntrySummary]) -> str:
+    """The summary per entry, then one line per entry and morphology."""
+    lines = ["| entry | trained: universal / specialist (median) | walks (>= 1 m) | held out, zero-shot: "
+             "universal / specialist (median) | held out: grid mean (median) |",
+             "|---|---|---|---|---|"]
+    for summary in summaries:
+        lines.append(f"| {summary.entry} | {_percent(summary.trained_ratio)} ({summary.trained_compared} compared) | "
+                     f"{summary.trained_walking}/{summary.trained} | {_percent(summary.held_out_ratio)} "
+                     f"({summary.held_out_compared} compared) | {summary.held_out_mean:.2f} m |")
+    lines += ["", "| entry | side | links | universal grid mean | specialist grid mean | ratio | derivation |",
+              "|---|---|---|---|---|---|---|"]
+    for row in sorted(comparisons, key=lambda row: (row.entry, row.side, row.links, row.derivation)):
+        specialist = "-" if row.specialist is None else f"{row.specialist:.2f} m"
+        lines.append(f"| {row.entry} | {row.side} | {row.links} | {row.universal:.2f} m | {specialist} | "
+                     f"{_percent(row.ratio)} | {row.derivation} |")
+    return "\n".join(lines)
+
+
+def _percent(value: float) -> str:
+    return "-" if math.isnan(value) else f"{100 * value:.0f}%"

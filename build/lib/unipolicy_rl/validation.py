@@ -1,0 +1,324 @@
+"""Every setting a run reads, checked when the run starts, before any robot is built.
+
+A typo should cost a second, not a training run: ``epochs=-1`` would train nothing and save an
+untrained policy, ``algo.gamma=1.5`` would train with a discount above one, and a bad
+``evaluation.grid`` would only fail at the final evaluation, hours later. Settings that
+have their own dataclass (design, robot, physics, reward, trust region, world model parts)
+are built here once so their own checks run now; the plain numbers of the run are checked
+by the rules below. Every error names the config key and the value.
+
+Each check lives in one place: a setting with a dataclass or constructor checks itself there,
+a plain value has its rule in :data:`RULES` (or :data:`JOINT_RULES` when it is checked against
+another). The factories rely on :func:`validate_config` having run (train.py calls it first);
+the few that are library entry points run the rules of the keys they read through
+:func:`check_settings`, the same rules, so a direct call fails as clearly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
+from unipolicy_rl.collectors.distributed import require_ray
+from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
+from unipolicy_rl.envs.morphology import SAMPLINGS
+from unipolicy_rl.envs.simulation import OBSERVATIONS
+from unipolicy_rl.networks import ACTIVATIONS
+from unipolicy_rl.observation_statistics import REFRESH_MODES
+from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES, token_critic
+
+
+def _integer(minimum: int) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            return f"must be an integer >= {minimum}"
+        return None
+
+    return check
+
+
+def _number(low: float, high: float, low_open: bool = False, high_open: bool = False) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return "must be a finite number"
+        if value < low or (low_open and value == low) or value > high or (high_open and value == high):
+            return f"must lie in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        return None
+
+    return check
+
+
+def _flag(value) -> str | None:
+    return None if isinstance(value, bool) else "must be true or false"
+
+
+def _one_of(choices) -> Callable[[object], str | None]:
+    return lambda value: None if value in choices else f"must be one of {sorted(choices)}"
+
+
+def _optional(rule: Callable[[object], str | None]) -> Callable[[object], str | None]:
+    def check(value) -> str | None:
+        problem = None if value is None else rule(value)
+        return None if problem is None else f"{problem} or null"
+
+    return check
+
+
+def _sizes(value) -> str | None:
+    if not all(isinstance(size, int) and not isinstance(size, bool) and size >= 1 for size in value):
+        return "must be a list of positive integers"
+    return None
+
+
+def _registered(registry: str) -> Callable[[object], str | None]:
+    """A key of ``unipolicy_rl.factories.<registry>``, read when checked (factories imports the
+    whole training stack, and a test may register an entry)."""
+
+    def check(value) -> str | None:
+        from unipolicy_rl import factories
+
+        choices = getattr(factories, registry)
+        return None if value in choices else f"must be one of {sorted(choices)}"
+
+    return check
+
+
+POSITIVE = _integer(1)
+INF = math.inf
+# key -> rule, for the plain values a run reads (dataclass-backed settings check themselves).
+RULES: dict[str, Callable[[object], str | None]] = {
+    "seed": _integer(0),
+    "epochs": POSITIVE,
+    "episodes_per_epoch": POSITIVE,
+    "workers": POSITIVE,
+    "collector.backend": _one_of(set(COLLECTOR_BACKENDS)),
+    "checkpoint_every": POSITIVE,
+    "progress_bar": _flag,
+    "source.kind": _registered("SOURCE_KINDS"),
+    "algo.name": _registered("LEARNERS"),
+    "algo.actor_hidden": _sizes,
+    "algo.critic_hidden": _sizes,
+    "algo.activation": _one_of(set(ACTIVATIONS)),
+    "evaluation.every_steps": _integer(0),  # 0: no periodic evaluation
+    "evaluation.dense_until": _integer(0),
+    "evaluation.then_every_steps": POSITIVE,
+    "evaluation.grid": POSITIVE,
+    "evaluation.episodes": POSITIVE,
+    "evaluation.morphologies": _one_of(set(GRAMMAR_SIDES)),  # read by robot=grammar only
+    "evaluation.morphology_grid": POSITIVE,
+    "policy.name": _one_of(set(FLAT_POLICIES + TOKEN_POLICIES)),
+    "robot.episode_length": POSITIVE,
+}
+
+# robot kind -> rules of the keys only that robot has (the grammar's split checks itself when built).
+ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
+    "vertebrate": {
+        "robot.observation": _one_of(set(OBSERVATIONS)),
+        "robot.append_design": _flag,
+    },
+    "grammar": {
+        "robot.morphologies": _one_of(set(GRAMMAR_SIDES)),
+        "robot.sampling": _one_of(set(SAMPLINGS)),
+        "robot.max_links": _optional(POSITIVE),
+        "robot.design_in_tokens": _flag,
+        "robot.evaluation_every_steps": POSITIVE,
+    },
+}
+
+
+# algo.name -> rules of the keys only that learner reads (an off-policy learner's settings are a
+# dataclass that checks itself: unipolicy_rl.learners.OffPolicySettings).
+ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
+    "trpo": {
+        "algo.init_log_std": _number(-20.0, 5.0),
+        "algo.gamma": _number(0.0, 1.0, low_open=True),
+        "algo.lmbda": _number(0.0, 1.0),
+        "algo.normalize_advantage": _flag,
+        "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
+        "algo.critic_epochs": POSITIVE,
+        "algo.critic_minibatch_size": POSITIVE,
+        "algo.max_consecutive_skips": POSITIVE,
+        "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
+    },
+}
+
+
+def _equal_shares(cfg: DictConfig) -> str | None:
+    if cfg.episodes_per_epoch % cfg.workers:
+        return (f"episodes_per_epoch ({cfg.episodes_per_epoch}) must be a multiple of workers ({cfg.workers}): "
+                f"each worker steps an equal share of the robots")
+    return None
+
+
+def _known_robot(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) not in ROBOT_KINDS:
+        return f"robot.kind must be one of {list(ROBOT_KINDS)}, got {robot_kind(cfg)!r}"
+    return None
+
+
+def _policy_reads_the_robot(cfg: DictConfig) -> str | None:
+    """A flat policy needs the vertebrate's observation, a token policy the grammar's tokens."""
+    name = cfg.policy.name
+    if robot_kind(cfg) == "grammar" and name in FLAT_POLICIES:
+        return (f"policy={name} reads one robot's flat observation, but robot=grammar observes robots of many "
+                f"morphologies as padded link tokens: use a token policy (policy={' or policy='.join(TOKEN_POLICIES)})")
+    if robot_kind(cfg) != "grammar" and name in TOKEN_POLICIES:
+        return (f"policy={name} reads link tokens, which robot={robot_kind(cfg)} does not write: train it with "
+                f"robot=grammar (the vertebrate is one of the grammar's morphologies), or use policy=mlp here")
+    return None
+
+
+def _token_critic_builds(cfg: DictConfig) -> str | None:
+    """A token policy's ``policy.critic`` is a known critic, and a transformer critic has sizes."""
+    if cfg.policy.name not in TOKEN_POLICIES:
+        return None
+    try:
+        token_critic(cfg)
+    except ValueError as error:
+        return str(error)
+    return None
+
+
+def _grammar_learns_with_trpo(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) == "grammar" and cfg.algo.name != "trpo":
+        return f"algo={cfg.algo.name} with robot=grammar: the token policies are TRPO's Gaussians, use algo=trpo"
+    return None
+
+
+def _world_model_reads_the_robot(cfg: DictConfig) -> str | None:
+    """A model source's world model must predict the state the robot's env writes: the
+    vertebrate's flat state, or a grammar robot's link tokens (world_model.model_state=tokens,
+    the TokenEnsemble that world_model=moe selects with robot=grammar)."""
+    from unipolicy_rl.world_models.token_layout import TOKEN_STATE  # (here: the world models import torch's stack)
+
+    world_model = cfg.get("world_model")
+    if cfg.source.kind != "model" or world_model is None:
+        return None  # (a missing group is _model_source_groups' to report)
+    state = world_model.get("model_state")
+    model = str(OmegaConf.select(world_model, "model._target_")).rsplit(".", 1)[-1]
+    source = cfg.source.get("name", cfg.source.kind)
+    if robot_kind(cfg) == "grammar" and state != TOKEN_STATE:
+        return (f"source={source} with robot=grammar: its world model, {model} (world_model.model_state={state}), "
+                f"predicts one robot's flat state, and robot=grammar observes robots of many morphologies as "
+                f"link tokens; the model conditioned on the morphology is world_model=moe's with robot=grammar "
+                f"(TokenEnsemble, world_model.model_state={TOKEN_STATE}): use source=moe with world_model=moe")
+    if robot_kind(cfg) != "grammar" and state == TOKEN_STATE:
+        return (f"world_model.model_state={TOKEN_STATE} ({model}) models link tokens, which "
+                f"robot={robot_kind(cfg)} does not write: train it with robot=grammar, or use the flat "
+                f"world_model=moe here")
+    return None
+
+
+def _model_source_groups(cfg: DictConfig) -> str | None:
+    if cfg.source.kind == "model":
+        for group in ("world_model", "imagination"):
+            if cfg.get(group) is None:
+                return (f"a model-based source needs a {group} config (e.g. world_model=moe, which selects its "
+                        f"imagination)")
+    return None
+
+
+# keys -> rule, for the plain values checked against each other; run after the keys' own rules,
+# it returns the whole message (naming the keys and values) or None.
+JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
+    ("episodes_per_epoch", "workers"): _equal_shares,
+    ("source.kind", "world_model", "imagination"): _model_source_groups,
+    ("robot",): _known_robot,
+    ("robot", "policy.name"): _policy_reads_the_robot,
+    ("policy",): _token_critic_builds,
+    ("robot", "algo.name"): _grammar_learns_with_trpo,
+    ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
+}
+
+
+def check_settings(cfg: DictConfig, *keys: str) -> None:
+    """Runs the rules of ``keys`` (:data:`RULES`, then each of :data:`JOINT_RULES` whose keys are
+    all among them): raises ValueError naming the first bad setting (key and value).
+
+    :func:`validate_config` runs every rule; a library entry point that reads a few plain
+    settings runs theirs here, so it fails as clearly without validate_config having run.
+    """
+    rules = {**RULES, **ROBOT_RULES.get(robot_kind(cfg), {})}
+    if "algo.name" in keys:
+        rules.update(ALGO_RULES.get(_get(cfg, "algo.name"), {}))
+    for key in keys:
+        if key in rules:
+            value = _get(cfg, key)
+            problem = rules[key](value)
+            if problem:
+                raise ValueError(f"{key} {problem}, got {value!r}")
+    for joint, rule in JOINT_RULES.items():
+        if set(joint) <= set(keys):
+            problem = rule(cfg)
+            if problem:
+                raise ValueError(problem)
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Raises ValueError naming the first bad setting of ``cfg`` (key and value)."""
+    algo_keys = ALGO_RULES.get(cfg.algo.name, {})
+    robot_keys = ROBOT_RULES.get(robot_kind(cfg), {})
+    check_settings(cfg, *RULES, *algo_keys, *robot_keys, *(key for joint in JOINT_RULES for key in joint))
+    # Imported here: factories imports the whole training stack.
+    from unipolicy_rl.collectors.imagination import check_stopping_rule
+    from unipolicy_rl.envs import DesignDistribution
+    from unipolicy_rl.factories import learner_settings, make_dynamics_model, resolve_device
+    from unipolicy_rl.learners.off_policy import check_model_based_imagination
+    from unipolicy_rl.world_models.disagreement import check_members_disagree
+
+    evaluation = cfg.evaluation
+    _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
+    _built("design", lambda: instantiate(cfg.design))
+    if robot_kind(cfg) == "grammar":
+        from unipolicy_rl.envs.config import morphology_env_kwargs
+
+        # The split (drawn once per process), its side and the padding; then the evaluated side.
+        _built("robot", lambda: morphology_env_kwargs(cfg))
+        _built("evaluation.morphologies", lambda: morphology_env_kwargs(cfg, cfg.evaluation.morphologies))
+    else:
+        _built("robot.settings", lambda: instantiate(cfg.robot.settings, _convert_="all"))
+    _built("robot.physics", lambda: instantiate(cfg.robot.physics))
+    _built("robot.reward", lambda: instantiate(cfg.robot.reward))
+    _built("algo", lambda: learner_settings(cfg))
+    _built("device", lambda: resolve_device(cfg.device))
+    if cfg.collector.backend == "ray":
+        try:
+            require_ray()
+        except ImportError as error:
+            raise ValueError(f"collector.backend=ray: {error}") from None
+    if cfg.source.kind == "model":  # its world_model and imagination groups are there (JOINT_RULES)
+        _built("world_model.trainer", lambda: instantiate(cfg.world_model.trainer))
+        imagination = _built("imagination", lambda: instantiate(cfg.imagination))
+        # On the meta device: the constructor's checks run, no weights are allocated.
+        model = _built("world_model.model", lambda: make_dynamics_model(cfg, device="meta"))
+        check_stopping_rule(imagination.stopping, model)
+        if imagination.disagreement_cut is not None:
+            check_members_disagree(model)
+        if cfg.algo.name != "trpo":
+            check_model_based_imagination(imagination)
+
+
+def _get(cfg: DictConfig, key: str):
+    node = cfg
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _built(key: str, build: Callable[[], object]):
+    """Builds a setting so its own checks run, prefixing any complaint with its key; returns it."""
+    try:
+        return build()
+    except ValueError as err:
+        raise ValueError(f"{key}: {err}") from None
+    except Exception as err:  # Hydra wraps a constructor's error in its own
+        cause = err.__cause__ or err.__context__ or err
+        if isinstance(cause, ValueError):
+            raise ValueError(f"{key}: {cause}") from None
+        if isinstance(cause, (RuntimeError, OverflowError, MemoryError)):  # sizes no machine could hold
+            raise ValueError(f"{key}: cannot be built ({type(cause).__name__}: {cause})") from None
+        raise
