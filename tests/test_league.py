@@ -382,3 +382,19 @@ def test_no_two_of_many_entries_are_drawn_alike():
     looks = [line_style(i) for i in range(40)]
     assert len({(tuple(colour), style) for colour, style in looks}) == 40
     assert looks[3][1] == "-" and looks[13][0] == looks[3][0] and looks[13][1] != looks[3][1]
+
+
+@pytest.mark.parametrize("plan", ["league_plan.yaml", "morphology_plan.yaml"])
+def test_every_entry_of_the_queue_plans_composes_and_passes_validation(plan):
+    """A typo in a plan's overrides would fail a run hours into a queue; here it fails at once."""
+    import yaml
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.validation import validate_config
+
+    entries = yaml.safe_load((ROOT / "benchmarks" / plan).read_text())
+    assert entries
+    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+        for name, entry in entries.items():
+            assert isinstance(entry["epochs"], int) and entry["epochs"] > 0, name
+            validate_config(compose("config", overrides=[*entry["overrides"], "seed=0", f"epochs={entry['epochs']}"]))
