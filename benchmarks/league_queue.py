@@ -9,7 +9,8 @@ Each run is ``<runs>/<entry>/seed<k>``, trained by ``<code>/train.py`` with the 
 from ``benchmarks/league_plan.yaml``, its seed, its budget (``epochs``), ``checkpoint_every=5``
 and no progress bar. Runs go seed by seed (every entry's seed 0, then seed 1, ...), so a queue
 cut short leaves every entry with the same seeds. A run whose folder holds a checkpoint resumes
-from it with the same overrides; one whose checkpoint has reached its budget is skipped. Every
+from it with the same overrides; one whose checkpoint has reached its budget is skipped once its
+final grid evaluation is written (a run stopped during it is resumed, which runs only that). Every
 command goes into the run's ``commands.txt`` beside the commit it ran, its output into
 ``train.log``. Stopping the queue (SIGTERM, Ctrl-C) stops its runs at their epoch's end, each
 saving a checkpoint the next queue resumes from.
@@ -43,6 +44,7 @@ from unipolicy_rl.report.runs import ReportError, archive_run
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
+FINAL_EVALUATION = Path("evaluation") / "designs.csv"  # train.py's grid evaluation after the last epoch
 FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
 
 
@@ -204,9 +206,12 @@ def main(argv: list[str] | None = None) -> int:
         if queue.stopping:
             break
         done = run.epochs_done()
-        if done >= run.epochs:
+        if done >= run.epochs and (run.folder / FINAL_EVALUATION).is_file():
             print(f"{run.entry} seed {run.seed}: done ({done} of {run.epochs} epochs)", flush=True)
             continue
+        if done >= run.epochs:  # stopped during its final evaluation: a resume runs only that
+            print(f"{run.entry} seed {run.seed}: trained ({done} of {run.epochs} epochs), resumed for its final "
+                  f"evaluation", flush=True)
         if args.dry_run:
             print(" ".join(run.command(sys.executable)[1:]))
             continue

@@ -306,10 +306,7 @@ def load_queue():
 def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp_path):
     queue = load_queue()
     assert queue.parse_seeds("0-2,7") == [0, 1, 2, 7]
-    plan = yaml.safe_load(queue.PLAN.read_text())
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        for entry in plan.values():  # every entry of the plan composes
-            compose("config", overrides=list(entry["overrides"]))
+    plan = yaml.safe_load(queue.PLAN.read_text())  # (every entry composes: the test below)
     runs = queue.plan_runs(plan, ["se-trpo", "se-moe-trpo"], [0, 1], tmp_path)
     assert [(run.entry, run.seed) for run in runs] == [("se-trpo", 0), ("se-moe-trpo", 0), ("se-trpo", 1),
                                                        ("se-moe-trpo", 1)]
@@ -322,6 +319,43 @@ def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp
     assert runs[0].command("python")[-1] == f"resume={runs[0].folder / 'checkpoint.pt'}"
     with pytest.raises(SystemExit, match="se-ppo"):
         queue.plan_runs(plan, ["se-ppo"], [0], tmp_path)
+
+
+def committed_code(folder: Path, train_script: str) -> Path:
+    """A one-commit repository whose train.py is ``train_script``: what a queue runs, without training."""
+    folder.mkdir()
+    (folder / "train.py").write_text(train_script)
+    commit = ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c"]
+    for command in (["init", "-q"], ["add", "train.py"], commit):
+        subprocess.run(["git", *command], cwd=folder, check=True)
+    return folder
+
+
+def test_a_queue_resumes_a_run_stopped_during_its_final_evaluation_and_skips_an_evaluated_one(tmp_path, capsys):
+    queue = load_queue()
+    # A train.py that, resumed, writes its final evaluation and records how it was called.
+    code = committed_code(tmp_path / "code", """import sys
+from pathlib import Path
+arguments = dict(part.split("=", 1) for part in sys.argv[1:])
+folder = Path(arguments["hydra.run.dir"])
+(folder / "evaluation").mkdir()
+(folder / "evaluation" / "designs.csv").write_text("design\\n")
+(folder / "called.txt").write_text(arguments.get("resume", "no resume"))
+""")
+    (tmp_path / "plan.yaml").write_text(yaml.safe_dump({"se-trpo": {"overrides": ["source=se"], "epochs": 3}}))
+    folders = [tmp_path / "runs" / "se-trpo" / f"seed{seed}" for seed in (0, 1)]
+    for folder in folders:
+        folder.mkdir(parents=True)
+        torch.save({"epoch": 3}, folder / "checkpoint.pt")
+    (folders[1] / "evaluation").mkdir()
+    (folders[1] / queue.FINAL_EVALUATION).write_text("design\n")
+    assert queue.main(["--code", str(code), "--runs", str(tmp_path / "runs"), "--plan", str(tmp_path / "plan.yaml"),
+                       "--entries", "se-trpo", "--seeds", "0-1", "--jobs", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "seed 0: trained (3 of 3 epochs), resumed for its final evaluation" in printed
+    assert (folders[0] / "called.txt").read_text() == str(folders[0] / "checkpoint.pt")
+    assert (folders[0] / queue.FINAL_EVALUATION).is_file()
+    assert "seed 1: done (3 of 3 epochs)" in printed and not (folders[1] / "called.txt").exists()
 
 
 def test_a_run_still_going_is_counted_apart_from_one_that_finished_without_the_level(runs):
@@ -363,12 +397,7 @@ def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep
 
 def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):
     queue = load_queue()
-    code = tmp_path / "code"
-    code.mkdir()
-    (code / "train.py").write_text("raise SystemExit('must not run')\n")
-    commit = ["-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c"]
-    for command in (["init", "-q"], ["add", "train.py"], commit):
-        subprocess.run(["git", *command], cwd=code, check=True)
+    code = committed_code(tmp_path / "code", "raise SystemExit('must not run')\n")
     assert queue.main(["--code", str(code), "--runs", str(tmp_path / "runs"), "--entries", "se-trpo", "--seeds", "0-1",
                        "--stop-after", "0"]) == 0
     printed = capsys.readouterr().out
