@@ -114,6 +114,26 @@ def test_gaussian_ensemble_fits_a_known_dynamics_and_its_members_differ():
     assert torch.equal(model.predict(*args, deterministic=True), model.predict(*args, deterministic=True))
 
 
+def test_a_bfloat16_fit_predicts_held_out_data_as_well_as_a_float32_one_and_keeps_float32_weights():
+    """precision=bfloat16 runs the training steps under autocast: the same stated accuracy as the
+    float32 fit of the test above, a different path there (the steps did run in bfloat16), and the
+    weights, Adam and the validation errors in float32."""
+    fits = {}
+    for precision in ("float32", "bfloat16"):
+        torch.manual_seed(0)
+        model = GaussianEnsemble(TOY, action_dim=2, members=4, elites=3, hidden=(64, 64))
+        report = ModelTrainer(max_epochs=40, patience=5, batch_size=128, precision=precision).fit(
+            model, toy_transitions(4000, 0), torch.Generator().manual_seed(0))
+        assert all(p.dtype == torch.float32 for p in model.parameters())
+        assert report.validation_error.dtype == torch.float32
+        fits[precision] = (model, one_step_r2(model, toy_transitions(1000, 1)))
+    assert fits["bfloat16"][1] >= 0.95 and fits["bfloat16"][1] >= fits["float32"][1] - 0.01, fits
+    first = [p for p in fits["float32"][0].parameters()][0]
+    assert not torch.equal(first, [p for p in fits["bfloat16"][0].parameters()][0])
+    with pytest.raises(ValueError, match="precision must be one of .*'float16'"):
+        ModelTrainer(precision="float16")
+
+
 def test_a_fit_budgeted_in_steps_stops_there_and_a_warm_model_keeps_improving_fit_after_fit():
     """max_steps caps a fit's gradient steps (mid-epoch); the weights carry over, so short fits add up."""
     torch.manual_seed(0)
