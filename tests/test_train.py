@@ -308,6 +308,7 @@ def test_a_resume_continues_with_the_runs_own_settings_and_this_command_lines(ca
     saved = saved_run_config("source=moe", "seed=3", "imagination.fit_every=2", "algo.max_kl=0.02",
                              "logger=tensorboard")
     saved["a_setting_since_removed"] = 1
+    saved["an_object_since_removed"] = {"_target_": "old.Thing", "size": 2}
     here = composed("source=moe", "epochs=200")
     resumed = settings_for_resume(here, {"config": saved}, overridden=["source", "epochs"], path="run.pt")
     # What the command line did not name is the run's, not this configuration's default ...
@@ -321,8 +322,9 @@ def test_a_resume_continues_with_the_runs_own_settings_and_this_command_lines(ca
     assert resumed.epochs == 200
     out = capsys.readouterr().out
     assert "seed=3" in out and "imagination.fit_every=2" in out and "logger (a " in out and "epochs" not in out
-    assert "a_setting_since_removed are not settings of this configuration" in out
-    assert "a_setting_since_removed" not in resumed
+    assert ("a_setting_since_removed, an_object_since_removed._target_, an_object_since_removed.size are not "
+            "settings of this configuration") in out
+    assert "a_setting_since_removed" not in resumed and "an_object_since_removed" not in resumed
     # Nothing differs, nothing is said.
     settings_for_resume(composed("source=moe", "seed=3"), {"config": saved_run_config("source=moe", "seed=3")},
                         overridden=["source", "seed"], path="run.pt")

@@ -263,6 +263,7 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
     for key in keys:
         parent, _, name = key.rpartition(".")
         if name == "_target_" and parent and not settled(parent) and \
+                OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None)) and \
                 OmegaConf.select(cfg, key, default=_ABSENT) != OmegaConf.select(saved, key):
             take_whole(parent)
     for key in keys:
