@@ -237,7 +237,7 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
             conflicts.append(f"{key}: {_show(ours)} here, {_show(theirs)} in the checkpoint")
         else:
             OmegaConf.update(resumed, key, theirs, force_add=True)
-            taken.append(f"{key}={_show(theirs)}")
+            taken.extend(_differences(key, ours, theirs))
     if conflicts:
         raise ValueError(f"cannot resume {str(path)!r} with other network/robot settings ("
                          + "; ".join(conflicts) + "): drop those overrides, or start a new run")
@@ -281,6 +281,16 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
         print(f"resume: the checkpoint's {', '.join(unknown)} are not settings of this configuration "
               f"(another group, or an older version): not used")
     return resumed
+
+
+def _differences(key: str, ours, theirs) -> list[str]:
+    """``key.leaf=value`` for each of ``theirs``'s settings that differs from ``ours`` (``key=value``
+    for a setting that is not a group)."""
+    if not (OmegaConf.is_dict(theirs) and OmegaConf.is_dict(ours)):
+        return [f"{key}={_show(theirs)}"]
+    return [f"{key}.{name}={_show(value)}" for name in _setting_keys(theirs)
+            if _plain(OmegaConf.select(ours, name, default=None, throw_on_resolution_failure=False))
+            != _plain(value := OmegaConf.select(theirs, name))]
 
 
 def _setting_keys(node: DictConfig, prefix: str = "") -> list[str]:
