@@ -115,7 +115,7 @@ class ModelTrainer:
             every core.
         precision: ``"float32"``, or ``"bfloat16"`` for the training steps' forward and backward
             passes under autocast (the weights, Adam's state, the loss's last steps and every
-            validation check stay float32). The fit is most of a model-based epoch's arithmetic,
+            validation check stay float32). The fit is about half of a model-based epoch's work,
             and on a CPU with bfloat16 instructions (AVX512-BF16, AMX) or a GPU its matrix
             products run about twice as fast (``benchmarks/fit_precision.py``).
     """
