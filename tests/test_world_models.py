@@ -128,8 +128,7 @@ def test_a_bfloat16_fit_predicts_held_out_data_as_well_as_a_float32_one_and_keep
         assert report.validation_error.dtype == torch.float32
         fits[precision] = (model, one_step_r2(model, toy_transitions(1000, 1)))
     assert fits["bfloat16"][1] >= 0.95 and fits["bfloat16"][1] >= fits["float32"][1] - 0.01, fits
-    first = [p for p in fits["float32"][0].parameters()][0]
-    assert not torch.equal(first, [p for p in fits["bfloat16"][0].parameters()][0])
+    assert not torch.equal(next(fits["float32"][0].parameters()), next(fits["bfloat16"][0].parameters()))
     with pytest.raises(ValueError, match="precision must be one of .*'float16'"):
         ModelTrainer(precision="float16")
 

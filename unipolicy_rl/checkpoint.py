@@ -241,7 +241,7 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
     if conflicts:
         raise ValueError(f"cannot resume {str(path)!r} with other network/robot settings ("
                          + "; ".join(conflicts) + "): drop those overrides, or start a new run")
-    unknown, taken_whole = [], [*ARCHITECTURE_KEYS, *NOT_RESUMED]
+    unknown, settled_groups = [], [*ARCHITECTURE_KEYS, *NOT_RESUMED]
 
     def take_whole(key: str) -> None:
         value = OmegaConf.select(saved, key).copy()
@@ -251,11 +251,11 @@ def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str],
                 # Where this run writes (``logger.log_dir``) follows this run, not the saved one's folder.
                 OmegaConf.update(value, name, _raw(ours, name), merge=False)
         OmegaConf.update(resumed, key, value, merge=False)
-        taken_whole.append(key)
+        settled_groups.append(key)
         taken.append(f"{key} (a {value._target_})")
 
     def settled(key: str) -> bool:
-        return named(key) or any(key == whole or key.startswith(f"{whole}.") for whole in taken_whole)
+        return named(key) or any(key == group or key.startswith(f"{group}.") for group in settled_groups)
 
     keys = _setting_keys(saved)
     # An object the run built from another class than this configuration does (another logger,
@@ -322,7 +322,7 @@ def _plain(value):
 
 
 def _show(value) -> str:
-    return repr(OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value)
+    return repr(_plain(value))
 
 
 @dataclass

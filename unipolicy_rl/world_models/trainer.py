@@ -183,7 +183,7 @@ class ModelTrainer:
         optimizer = torch.optim.Adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
         dtype = PRECISIONS[self.precision]
         autocast = (contextlib.nullcontext if dtype is None
-                    else lambda: torch.autocast(device_type=torch.device(device).type, dtype=dtype))
+                    else lambda: torch.autocast(device_type=device.type, dtype=dtype))
         member_parameters = model.member_parameters()
         best_weights = [p.detach().clone() for p in member_parameters]
         best_error = torch.full((model.members,), math.inf, device=device)
