@@ -18,6 +18,7 @@ from unipolicy_rl.checkpoint import load_checkpoint
 from unipolicy_rl.collectors.real import IMAGINED, label
 from unipolicy_rl.factories import make_learner
 from unipolicy_rl.learners import Learner, OffPolicyLearner
+from unipolicy_rl.networks import WarmedUpBatchRenorm1d
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -70,6 +71,20 @@ def test_sac_target_critics_follow_the_critics_at_the_polyak_rate_and_crossq_has
     assert any(not torch.equal(value.detach(), before[key]) for key, value in target.items())
     crossq = make_learner(config("crossq"), 3, 1)
     assert crossq.target_update is None
+
+
+def test_batch_renormalisation_keeps_its_corrections_clamped_long_after_its_warm_up():
+    """After the warm-up a batch 10x wider than the running statistics is scaled by at most
+    ``max_r``: with TorchRL's own count the factor on ``r`` grows with every further warm-up's
+    worth of steps and the output widens past the clamp."""
+    torch.manual_seed(0)
+    layer = WarmedUpBatchRenorm1d(4, warmup_steps=5, momentum=0.5)
+    for _ in range(20):  # four warm-ups' worth of batches from N(0, 1)
+        layer(torch.randn(256, 4))
+    wide = layer(torch.randn(256, 4) * 10)
+    assert wide.std(0).max().item() <= layer.max_r * 1.01
+    assert wide.std(0).min().item() >= layer.max_r * 0.99  # the clamp is reached, not skipped
+    assert int(layer.num_batches_tracked) == 5
 
 
 def test_the_temperature_holds_the_policys_entropy_at_its_target():

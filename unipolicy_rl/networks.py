@@ -19,7 +19,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import BatchRenorm1d, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
-__all__ = ["ACTIVATIONS", "make_actor", "make_critic", "make_mlp", "make_q_network", "make_tanh_actor"]
+__all__ = ["ACTIVATIONS", "WarmedUpBatchRenorm1d", "make_actor", "make_critic", "make_mlp", "make_q_network", "make_tanh_actor"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -146,6 +146,24 @@ def make_tanh_actor(
     )
 
 
+class WarmedUpBatchRenorm1d(BatchRenorm1d):
+    """TorchRL's ``BatchRenorm1d`` whose warm-up ends at ``warmup_steps`` and stays ended.
+
+    TorchRL's layer scales its renormalisation corrections ``r`` and ``d`` by
+    ``num_batches_tracked // warmup_steps``, meaning 0 during the warm-up and 1 after it, but it
+    never stops counting (its ``clamp_max`` is not in place). So the factor becomes 2 after twice
+    the warm-up, 3 after three times, and so on: ``r`` and ``d`` grow past their clamps
+    (``max_r``, ``max_d``) and a CrossQ critic that ran well for 20,000 steps is normalised wrongly
+    from then on. Capping the count in place after each training pass keeps the factor at 1.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = super().forward(x)
+        if self.training:
+            self.num_batches_tracked.clamp_(max=self.warmup_steps)
+        return out
+
+
 def make_q_network(
     observation_dim: int,
     action_dim: int,
@@ -157,17 +175,17 @@ def make_q_network(
 ) -> ValueOperator:
     """Action-value network ``(observation, action) -> state_action_value``.
 
-    ``batch_renorm`` puts batch renormalisation (TorchRL's ``BatchRenorm1d``) after the input
+    ``batch_renorm`` puts batch renormalisation (:class:`WarmedUpBatchRenorm1d`) after the input
     and every hidden layer, as CrossQ does so that it can drop the target network.
     """
     try:
         activation_class = ACTIVATIONS[activation]
     except KeyError as err:
         raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
-    layers: list[nn.Module] = [BatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
+    layers: list[nn.Module] = [WarmedUpBatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
     width = observation_dim + action_dim
     for hidden in hidden_sizes:
-        layers += [nn.Linear(width, hidden), *([BatchRenorm1d(hidden)] if batch_renorm else []), activation_class()]
+        layers += [nn.Linear(width, hidden), *([WarmedUpBatchRenorm1d(hidden)] if batch_renorm else []), activation_class()]
         width = hidden
     layers.append(nn.Linear(width, 1))
     return ValueOperator(_Concatenated(nn.Sequential(*layers)), in_keys=[observation_key, "action"],

@@ -53,7 +53,7 @@ class OffPolicySettings:
         critic_hidden, activation: each critic's MLP (the actor's is the policy's, ``algo.actor_hidden``).
         gamma: discount.
         learning_rate: Adam's step size for the actor, the critics and the entropy temperature.
-        adam_betas: Adam's betas (CrossQ: 0.5, 0.999).
+        adam_betas: Adam's betas (the CrossQ paper: 0.5, 0.999; crossq.yaml keeps SAC's, see there).
         batch_size: transitions per gradient step.
         updates_per_step: gradient steps per new real transition (UTD), at least 1.
         buffer_capacity: real transitions kept (FIFO).
