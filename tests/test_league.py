@@ -231,6 +231,21 @@ def test_a_run_short_of_either_threshold_never_walks(runs):
     assert [e.steps for e in evaluations[:3]] == [2000, 4000, 6000] and evaluations[-1].steps == 60_000
 
 
+def test_a_run_resumed_with_a_larger_budget_is_unfinished_until_it_gets_there(tmp_path):
+    """Its final evaluation of the first budget stays in the folder; the run is not done meanwhile."""
+    path = write_run(tmp_path, "se-sac", "real", 0, [(0, 1.0, 0.0)], 20_000)
+    designs = path / "evaluation" / "designs.csv"
+    designs.parent.mkdir()
+    designs.write_text("length,density,episodes,mean_episode_reward,std_episode_reward,mean_forward_displacement,"
+                       "std_forward_displacement,mean_forward_speed,physics_faults\n0.15,0.4,1,1.0,0.0,1.0,0.0,0.1,0\n")
+    assert load_run(path, path.name).finished
+    config = OmegaConf.load(path / ".hydra" / "config.yaml")
+    config.epochs = 30  # resume=... epochs=30: trained to 20 so far
+    OmegaConf.save(config, path / ".hydra" / "config.yaml")
+    assert not load_run(path, path.name).finished
+    assert not league.run_result(load_run(path, path.name)).finished
+
+
 def test_the_grid_is_read_at_the_first_evaluation_at_or_after_each_milestone(runs, entries):
     se0, se2 = runs["se-trpo", 0].milestones, runs["se-trpo", 2].milestones
     assert (se0[50_000].steps, se0[50_000].grid_mean, se0[50_000].grid_min) == (50_000, 5.2, 2.6)

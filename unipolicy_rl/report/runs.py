@@ -59,6 +59,7 @@ class Run:
     overrides: list[str] = field(default_factory=list)  # this job's command-line overrides
     rows: list[dict[str, float]] = field(default_factory=list)  # metrics.csv, numbers only, NaN where blank
     columns: list[str] = field(default_factory=list)
+    last_row_cut: bool = False  # metrics.csv's last row was cut short (killed while writing it) and dropped
     designs: list[DesignResult] | None = None  # the final design-grid evaluation
     checkpoint: Path | None = None
     checkpoint_epoch: int | None = None  # read only for runs that did not finish
@@ -81,8 +82,13 @@ class Run:
 
     @property
     def finished(self) -> bool:
-        """Trained to the end and evaluated: its final grid evaluation exists."""
-        return self.designs is not None
+        """Trained to its budget and evaluated: its final grid evaluation exists and its last epoch
+        is the configured ``epochs``. A run resumed with a larger budget (``epochs=300`` after
+        120) keeps the first budget's final evaluation until it gets there: not finished meanwhile."""
+        if self.designs is None:
+            return False
+        logged = self.last_epoch + (1 if self.last_row_cut else 0)  # a row cut short was the next epoch's
+        return self.epochs is None or not self.rows or logged >= self.epochs
 
     @property
     def design_distribution(self) -> DesignDistribution | None:
@@ -284,6 +290,7 @@ def _read_metrics(run: Run) -> None:
         except ValueError as error:
             run.problems.append(f"unreadable {path}: line {line}: {_reason(error)}")
             return
+    run.last_row_cut = cut
     if cut:
         run.problems.append(f"{path}: its last row was cut short (killed while writing it?); that row is dropped")
     run.columns, run.rows = columns, _drop_redone_epochs(rows)
