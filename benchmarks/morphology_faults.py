@@ -1,6 +1,7 @@
 """Which of the split's robots the simulator runs: physics faults per morphology under random actions.
 
     python benchmarks/morphology_faults.py [--side train|held_out] [--count 8] [--robots 8] [--steps 100] [--seed 0]
+        [Hydra overrides, e.g. robot.physics.max_joint_velocity=null]
 
 A robot that stands (the split's filter) can still blow up once driven: a light distal link
 flailing under its motor's torque reaches tens of m/s, the observation passes the explosion
@@ -36,9 +37,11 @@ def link_speeds(values: list[float]) -> tuple[float, float]:
     return float(np.linalg.norm(state[:, 7:10], axis=1).max()), float(np.linalg.norm(state[:, 10:13], axis=1).max())
 
 
-def fault_rate(side: str, index: int, robots: int, steps: int, seed: int) -> dict[str, float]:
+def fault_rate(side: str, index: int, robots: int, steps: int, seed: int,
+               overrides: tuple[str, ...] = ()) -> dict[str, float]:
     with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["robot=grammar", f"robot.morphologies={side}", f"robot.specialist={index}"])
+        cfg = compose("config", overrides=["robot=grammar", f"robot.morphologies={side}", f"robot.specialist={index}",
+                                           *overrides])
     torch.manual_seed(seed)
     env = make_morphology_env(cfg, robots)
     try:
@@ -71,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--robots", type=int, default=8, help="robots per morphology, each of a random design")
     parser.add_argument("--steps", type=int, default=100, help="random actions per robot")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides of the grammar config")
     args = parser.parse_args(argv)
     for name in ("count", "robots", "steps"):
         if getattr(args, name) < 1:
@@ -82,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     faulty = 0
     for side in sides:
         for index in range(args.count):
-            result = fault_rate(side, index, args.robots, args.steps, args.seed)
+            result = fault_rate(side, index, args.robots, args.steps, args.seed, tuple(args.overrides))
             faulty += result["faults_per_1000"] > 0
             print(f"| {side} | {index} | {result['faults_per_1000']:.1f} | {result['speed_before_fault']:.1f} "
                   f"| {result['rate_before_fault']:.1f} |", flush=True)
