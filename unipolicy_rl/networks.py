@@ -19,7 +19,8 @@ from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import BatchRenorm1d, IndependentNormal, ProbabilisticActor, TanhNormal, ValueOperator
 
-__all__ = ["ACTIVATIONS", "WarmedUpBatchRenorm1d", "make_actor", "make_critic", "make_mlp", "make_q_network", "make_tanh_actor"]
+__all__ = ["ACTIVATIONS", "WarmedUpBatchRenorm1d", "make_actor", "make_critic", "make_mlp", "make_q_network",
+           "make_tanh_actor"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -185,7 +186,8 @@ def make_q_network(
     layers: list[nn.Module] = [WarmedUpBatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
     width = observation_dim + action_dim
     for hidden in hidden_sizes:
-        layers += [nn.Linear(width, hidden), *([WarmedUpBatchRenorm1d(hidden)] if batch_renorm else []), activation_class()]
+        renorm = [WarmedUpBatchRenorm1d(hidden)] if batch_renorm else []
+        layers += [nn.Linear(width, hidden), *renorm, activation_class()]
         width = hidden
     layers.append(nn.Linear(width, 1))
     return ValueOperator(_Concatenated(nn.Sequential(*layers)), in_keys=[observation_key, "action"],
