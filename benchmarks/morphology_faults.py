@@ -1,7 +1,7 @@
 """Which of the split's robots the simulator runs: physics faults per morphology under random actions.
 
     python benchmarks/morphology_faults.py [--side train|held_out] [--count 8] [--robots 8] [--steps 100] [--seed 0]
-        [Hydra overrides, e.g. robot.physics.max_joint_velocity=null]
+        [Hydra overrides of the grammar config, e.g. robot.physics.max_torque=1.0]
 
 A robot that stands (the split's filter) can still blow up once driven: a light distal link
 flailing under its motor's torque reaches tens of m/s, the observation passes the explosion
@@ -11,8 +11,10 @@ faulted in every episode and learned nothing, docs/grammar.md), so this measures
 training: the first ``--count`` morphologies of ``--side`` (the ones a study's specialists use),
 each as ``--robots`` robots of random designs driven by uniform random actions for ``--steps``
 steps (robots that fault start a new episode), and prints per morphology the faults per 1,000
-robot-steps and, over the steps just before each fault, the largest link speed (m/s) and link
-rotation rate (rad/s) reached.
+robot-steps, over the steps just before each fault the largest link speed (m/s) and link
+rotation rate (rad/s) reached, and the farthest any robot's base got from its start (m) and the
+highest it got: a change that stops the faults by flinging robots about (a joint-rate cap below
+PyBullet's own does: docs/grammar.md) shows there.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ def fault_rate(side: str, index: int, robots: int, steps: int, seed: int,
         env.set_seed(seed)
         td = env.reset()
         before = [sim.read()[0] for sim in env.simulations]
-        faults, speeds, rates = 0, [], []
+        faults, speeds, rates, travel, height = 0, [], [], 0.0, 0.0
         for _ in range(steps):
             td["action"] = env.action_spec.rand()
             out = env.step(td)["next"]
@@ -58,12 +60,15 @@ def fault_rate(side: str, index: int, robots: int, steps: int, seed: int,
                 speeds.append(speed)
                 rates.append(rate)
             before = [sim.read()[0] for sim in env.simulations]
+            bases = np.asarray([values[:3] for values in before])  # each robot starts at the origin
+            travel = max(travel, float(np.linalg.norm(bases[:, :2], axis=1).max()))
+            height = max(height, float(bases[:, 2].max()))
             td = env.reset(out.clone()) if out["done"].any() else out.clone()
     finally:
         env.close()
     return {"faults_per_1000": 1000.0 * faults / (robots * steps),
             "speed_before_fault": max(speeds, default=float("nan")),
-            "rate_before_fault": max(rates, default=float("nan"))}
+            "rate_before_fault": max(rates, default=float("nan")), "farthest": travel, "highest": height}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,15 +86,16 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     sides = (args.side,) if args.side else ("train", "held_out")
     print("| side | morphology | faults per 1,000 robot-steps | largest link speed before a fault (m/s) "
-          "| largest link rotation rate before a fault (rad/s) |")
-    print("|---|---|---|---|---|")
+          "| largest link rotation rate before a fault (rad/s) | farthest base from its start (m) | highest base (m) |")
+    print("|---|---|---|---|---|---|---|")
     faulty = 0
     for side in sides:
         for index in range(args.count):
             result = fault_rate(side, index, args.robots, args.steps, args.seed, tuple(args.overrides))
             faulty += result["faults_per_1000"] > 0
             print(f"| {side} | {index} | {result['faults_per_1000']:.1f} | {result['speed_before_fault']:.1f} "
-                  f"| {result['rate_before_fault']:.1f} |", flush=True)
+                  f"| {result['rate_before_fault']:.1f} | {result['farthest']:.1f} | {result['highest']:.2f} |",
+                  flush=True)
     print(f"{faulty} of {len(sides) * args.count} morphologies faulted under random actions")
     return 0
 

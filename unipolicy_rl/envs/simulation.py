@@ -43,10 +43,6 @@ class PhysicsSettings:
     max_torque: float = 1.5
     action_range: float = JOINT_RANGE
     lateral_friction: float = 1.0
-    # Cap on every joint's rate (rad/s; PyBullet's maxJointVelocity), None: PyBullet's own.
-    # The grammar's robots need one: a light distal link under these motors flails past the
-    # explosion limit, or the solver blows up within one control period (docs/grammar.md).
-    max_joint_velocity: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.time_step > 0 and math.isfinite(self.time_step)):
@@ -59,10 +55,6 @@ class PhysicsSettings:
                 raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
         if not 0 < self.action_range <= JOINT_RANGE:
             raise ValueError(f"action_range must lie in (0, {JOINT_RANGE}] rad, got {self.action_range!r}")
-        if self.max_joint_velocity is not None and not (self.max_joint_velocity > 0
-                                                        and math.isfinite(self.max_joint_velocity)):
-            raise ValueError(f"max_joint_velocity must be null or a positive finite number (rad/s), "
-                             f"got {self.max_joint_velocity!r}")
 
     @property
     def control_period(self) -> float:
@@ -145,12 +137,9 @@ def build_world(client: int, physics: PhysicsSettings, description: RobotDescrip
     plane = pybullet.createMultiBody(0.0, ground, physicsClientId=client)
     pybullet.changeDynamics(plane, -1, lateralFriction=physics.lateral_friction, physicsClientId=client)
     body = load_robot(client, description, (0.0, 0.0, height + 0.005), math.pi, physics.max_torque, visuals)
-    joint_cap = {} if physics.max_joint_velocity is None else {"maxJointVelocity": physics.max_joint_velocity}
     for link_index in body.link_indices.values():
-        # A link's index is its parent joint's, so the cap reaches every joint (the base, -1, has none).
-        cap = joint_cap if link_index >= 0 else {}
         pybullet.changeDynamics(body.body_id, link_index, lateralFriction=physics.lateral_friction,
-                                physicsClientId=client, **cap)
+                                physicsClientId=client)
     return body
 
 
