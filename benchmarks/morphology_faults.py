@@ -1,7 +1,7 @@
 """Which of the split's robots the simulator runs: physics faults per morphology under random actions.
 
     python benchmarks/morphology_faults.py [--side train|held_out] [--count 8] [--robots 8] [--steps 100] [--seed 0]
-        [Hydra overrides of the grammar config, e.g. robot.physics.max_torque=1.0]
+        [Hydra overrides of the grammar config, e.g. robot.physics.max_joint_speed=null]
 
 A robot that stands (the split's filter) can still blow up once driven: a light distal link
 flailing under its motor's torque reaches tens of m/s, the observation passes the explosion
@@ -13,8 +13,8 @@ each as ``--robots`` robots of random designs driven by uniform random actions f
 steps (robots that fault start a new episode), and prints per morphology the faults per 1,000
 robot-steps, over the steps just before each fault the largest link speed (m/s) and link
 rotation rate (rad/s) reached, and the farthest any robot's base got from its start (m) and the
-highest it got: a change that stops the faults by flinging robots about (a joint-rate cap below
-PyBullet's own does: docs/grammar.md) shows there.
+highest it got: a change that stops the faults by flinging robots about (a clamp on the joints'
+state does: docs/grammar.md) shows there.
 """
 
 from __future__ import annotations

@@ -54,7 +54,7 @@ BASES: dict[str, tuple[str, str]] = {
 VARIANTS: dict[tuple[str, str], dict[str, object]] = {
     ("design/de.yaml", ""): {"length_range": [0.175, 0.175], "density_range": [0.5, 0.5]},  # DE: the SE centre
     ("robot/grammar.yaml", "split.train_limits"): {"segments": [2, 4], "leg_pairs": [1, 2]},  # split's TRAIN_LIMITS
-    ("robot/grammar.yaml", "physics"): {},  # the same physics and reward as the vertebrate's
+    ("robot/grammar.yaml", "physics"): {"max_joint_speed": 10.0},  # the vertebrate's, with servos' top speed
     ("robot/grammar.yaml", "reward"): {},
     # the default MOE's fits: checks every 25 steps on 2,000 held-out rows, flat in the buffer
     ("world_model/moe.yaml", "trainer"): {"check_every": 25, "validation_rows": 2000},

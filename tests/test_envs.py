@@ -146,6 +146,7 @@ def test_exploding_physics_truncates_with_a_flag_and_no_nan():
         (lambda: RobotSettings(actuated=("rear_left_hip", "tail_wag")), "tail_wag"),
         (lambda: RobotSettings(observed_links=("front_left_claw",)), "front_left_claw"),
         (lambda: PhysicsSettings(substeps=0), "substeps"),
+        (lambda: PhysicsSettings(max_joint_speed=0.0), "max_joint_speed must be null or a positive"),
         (lambda: RewardWeights(w_y=1.0), "w_y"),
         (lambda: WalkerEnv(observation="pixels"), "pixels"),
         (lambda: BatchedWalkerEnv(0), "num_robots"),

@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, MorphologyWalkerEnv, walking_reward
+from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, MorphologyWalkerEnv, PhysicsSettings, walking_reward
 from unipolicy_rl.envs.config import env_kwargs, make_morphology_env
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
 from unipolicy_rl.envs.tokens import (
@@ -184,6 +184,28 @@ def test_the_vertebrate_walks_exactly_as_in_the_vertebrate_env():
     assert a["observation"][0, 0].abs() > 0.01 and b["truncated"].all() and a["truncated"].all()
     old.close()
     new.close()
+
+
+@pytest.mark.parametrize("speed", [None, 3.0])
+def test_the_motors_top_speed_holds_every_driven_joint_and_keeps_the_robot_on_the_ground(speed):
+    """Targets jumping between the ends of their range drive a light robot's joints well past
+    3 rad/s; motors with a top speed of 3 rad/s keep every joint within it, and the robot stays
+    where it stands (a clamp on the joints' state instead flings robots: docs/grammar.md)."""
+    env = _env(2, (TEN_LINKS,), design=DE, physics=PhysicsSettings(max_joint_speed=speed))
+    td = env.reset()
+    fastest, highest = 0.0, 0.0
+    for step in range(12):
+        td = env.step(td.set("action", torch.full((2, env.max_links), 1.0 if step % 2 else -1.0)))["next"]
+        for simulation in env.simulations:
+            links, joints = simulation.read()
+            fastest = max(fastest, max(abs(rate) for rate in joints[1::2]))
+            highest = max(highest, links[2])
+    env.close()
+    if speed is None:
+        assert fastest > 3.0 * 1.5
+    else:
+        assert fastest <= speed * 1.05
+        assert highest < 0.5
 
 
 def test_reward_reads_the_root_token_and_orientations_are_rotations():

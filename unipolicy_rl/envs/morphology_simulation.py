@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import pybullet
 
-from unipolicy_rl.envs.simulation import PhysicsSettings, build_world, position_motors
+from unipolicy_rl.envs.simulation import PhysicsSettings, build_world, drive, position_motors
 from unipolicy_rl.robots import RobotBody, RobotDescription
 from unipolicy_rl.robots.kinematics import rest_height
 
@@ -40,7 +40,7 @@ class MorphologySimulation:
         self._links = [self.body.link_index(link.name) for link in description.links[1:]]
         self._motor_command = position_motors(self.body, self.physics)
         if self.num_actions:
-            pybullet.setJointMotorControlArray(targetPositions=[0.0] * self.num_actions, **self._motor_command)
+            drive(self._motor_command, [0.0] * self.num_actions, self.physics.max_joint_speed)
         # PyBullet reports the base's inertial frame; the link's own frame (its +x along the
         # capsule, the frame joint axes are given in) is that frame turned back by this rotation.
         local = pybullet.getDynamicsInfo(self.body.body_id, -1, physicsClientId=self.client)[4]
@@ -52,7 +52,7 @@ class MorphologySimulation:
         """Sets the driven joints' targets (rad, in the description's actuated-joint order) and runs
         one control period of physics."""
         if self.num_actions:
-            pybullet.setJointMotorControlArray(targetPositions=targets, **self._motor_command)
+            drive(self._motor_command, targets, self.physics.max_joint_speed)
         for _ in range(self.physics.substeps):
             pybullet.stepSimulation(physicsClientId=self.client)
 

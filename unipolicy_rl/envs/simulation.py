@@ -43,6 +43,10 @@ class PhysicsSettings:
     max_torque: float = 1.5
     action_range: float = JOINT_RANGE
     lateral_friction: float = 1.0
+    # The position motors' top speed (rad/s), a servo's speed limit; None: none. Without one a
+    # motor drives a light link as fast as its torque allows: some of the grammar's robots then
+    # fling themselves metres into the air (docs/grammar.md). The vertebrate runs without.
+    max_joint_speed: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.time_step > 0 and math.isfinite(self.time_step)):
@@ -55,6 +59,9 @@ class PhysicsSettings:
                 raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
         if not 0 < self.action_range <= JOINT_RANGE:
             raise ValueError(f"action_range must lie in (0, {JOINT_RANGE}] rad, got {self.action_range!r}")
+        if self.max_joint_speed is not None and not (self.max_joint_speed > 0 and math.isfinite(self.max_joint_speed)):
+            raise ValueError(f"max_joint_speed must be null or a positive finite number (rad/s), "
+                             f"got {self.max_joint_speed!r}")
 
     @property
     def control_period(self) -> float:
@@ -145,7 +152,8 @@ def build_world(client: int, physics: PhysicsSettings, description: RobotDescrip
 
 def position_motors(body: RobotBody, physics: PhysicsSettings) -> dict:
     """Keyword arguments of ``setJointMotorControlArray`` for ``body``'s actuated joints, less the
-    targets: PyBullet's PD position motors with the physics settings' gains and torque limit."""
+    targets: PyBullet's PD position motors with the physics settings' gains and torque limit
+    (:func:`drive` sets the targets, and the speed limit where there is one)."""
     n = len(body.actuated_joint_indices)
     return {
         "bodyUniqueId": body.body_id,
@@ -156,6 +164,23 @@ def position_motors(body: RobotBody, physics: PhysicsSettings) -> dict:
         "velocityGains": [physics.velocity_gain] * n,
         "physicsClientId": body.client,
     }
+
+
+def drive(motors: dict, targets: Sequence[float], max_speed: float | None) -> None:
+    """Sets the position motors' targets (``motors`` from :func:`position_motors`): one call for
+    every joint, or, with a speed limit, which PyBullet's array call cannot take, one call per joint
+    with ``maxVelocity``. (``changeDynamics(maxJointVelocity=...)`` is not a substitute: it clamps
+    the joint's state and flings the robots instead, docs/grammar.md.)"""
+    if max_speed is None:
+        pybullet.setJointMotorControlArray(targetPositions=targets, **motors)
+        return
+    body, client = motors["bodyUniqueId"], motors["physicsClientId"]
+    for joint, target, force, position_gain, velocity_gain in zip(
+            motors["jointIndices"], targets, motors["forces"], motors["positionGains"], motors["velocityGains"],
+            strict=True):
+        pybullet.setJointMotorControl2(body, joint, pybullet.POSITION_CONTROL, targetPosition=target, force=force,
+                                       positionGain=position_gain, velocityGain=velocity_gain, maxVelocity=max_speed,
+                                       physicsClientId=client)
 
 
 class WalkerSimulation:
@@ -249,7 +274,7 @@ class WalkerSimulation:
             pybullet.stepSimulation(physicsClientId=self.client)
 
     def _drive(self, targets: Sequence[float]) -> None:
-        pybullet.setJointMotorControlArray(targetPositions=targets, **self._motor_command)
+        drive(self._motor_command, targets, self.physics.max_joint_speed)
 
     # -- state ---------------------------------------------------------------------
     def read(self) -> np.ndarray:
