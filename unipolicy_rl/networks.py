@@ -161,7 +161,8 @@ class WarmedUpBatchRenorm1d(BatchRenorm1d):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = super().forward(x)
         if self.training:
-            self.num_batches_tracked.clamp_(max=self.warmup_steps)
+            # clamp then copy_: both have vmap batching rules (the critics run under vmap), clamp_ has not
+            self.num_batches_tracked.copy_(self.num_batches_tracked.clamp(max=self.warmup_steps))
         return out
 
 
