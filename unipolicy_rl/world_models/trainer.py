@@ -115,9 +115,9 @@ class ModelTrainer:
             every core.
         precision: ``"float32"``, or ``"bfloat16"`` for the training steps' forward and backward
             passes under autocast (the weights, Adam's state, the loss's last steps and every
-            validation check stay float32). The fit is about half of a model-based epoch's work,
-            and on a CPU with bfloat16 instructions (AVX512-BF16, AMX) or a GPU its matrix
-            products run about twice as fast (``benchmarks/fit_precision.py``).
+            validation check stay float32). The fit is about half of a model-based epoch's work;
+            on our 2-core CPU a bfloat16 training step took 0.68x a float32 one at the same
+            validation error (``benchmarks/fit_precision.py``, docs/results.md).
     """
 
     learning_rate: float = 1e-3
