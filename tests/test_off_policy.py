@@ -108,6 +108,62 @@ def test_the_deterministic_action_is_the_tanh_of_the_mean():
     torch.testing.assert_close(out["action"], torch.tanh(out["loc"]))
 
 
+def network_outputs(learner: OffPolicyLearner, observations: torch.Tensor, actions: torch.Tensor) -> list[torch.Tensor]:
+    """On raw observations: the actor's Gaussian (loc, scale), then every critic's value (online,
+    then target), each in evaluation and in training mode (batch statistics; run on copies of the
+    critics' parameters, so the learner's running statistics do not move)."""
+    probe = TensorDict({"observation": observations.clone()}, [len(observations)])
+    gaussian = learner._gaussian(probe)
+    outputs = [gaussian.loc, gaussian.scale]
+    data = learner.normalizer(TensorDict({"observation": observations.clone(), "action": actions},
+                                         [len(observations)]))
+    critic = learner.loss.qvalue_network
+    for name in ("qvalue_network_params", "target_qvalue_network_params"):
+        params = getattr(learner.loss, name, None)
+        if params is None:
+            continue
+        for member in range(params.shape[0]):
+            for training in (False, True):
+                with params[member].detach().clone().to_module(critic):
+                    critic.train(training)
+                    outputs.append(critic(data.clone())["state_action_value"])
+    critic.train(False)
+    return outputs
+
+
+@pytest.mark.parametrize("algo", ["sac", "crossq", "redq"])
+def test_a_preserving_refresh_leaves_the_actor_and_every_critic_as_they_were(algo):
+    """``normalizer_refresh=preserve`` re-expresses the actor's and the critics' first layers (CrossQ:
+    its input's running statistics) so a refresh to very different statistics changes no output
+    on raw observations; ``jump``, the same refresh, changes them."""
+    changes = {}
+    for mode in ("preserve", "jump"):
+        torch.manual_seed(0)
+        learner = make_learner(config(algo, f"algo.normalizer_refresh={mode}", "algo.updates_per_step=1"), 3, 1)
+        data = transitions(64, 3, 1)
+        learner.refresh_observation_normalizer(data)
+        learner.update(data)  # the critics (and CrossQ's running statistics) move off their start
+        params = learner.loss.qvalue_network_params  # CrossQ: its warm-up over, r and d at work
+        for key in [k for k in params.keys(True, True) if k[-1] == "num_batches_tracked"]:
+            params.get(key).fill_(WarmedUpBatchRenorm1d(1).warmup_steps)
+        g = torch.Generator().manual_seed(1)
+        observations = torch.randn(256, 3, generator=g) * 2 + 1
+        actions = torch.rand(256, 1, generator=g) * 2 - 1
+        before = network_outputs(learner, observations, actions)
+        shifted = data.clone()
+        shifted["observation"] = shifted["observation"] * 5 + 3  # statistics far from the first ones
+        metrics = learner.refresh_observation_normalizer(shifted)
+        after = network_outputs(learner, observations, actions)
+        changes[mode] = max(float((a - b).abs().max().detach()) for a, b in zip(after, before))
+        if mode == "preserve":
+            assert metrics["train/refresh_kl"] < 1e-8
+            for a, b in zip(after, before):
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+        else:
+            assert metrics["train/refresh_kl"] > 1e-3
+    assert changes["jump"] > 100 * max(changes["preserve"], 1e-6)
+
+
 @pytest.mark.parametrize(
     ("override", "match"),
     [
@@ -117,6 +173,7 @@ def test_the_deterministic_action_is_the_tanh_of_the_mean():
         ("algo.target_update_rate=null", "target_update_rate must be set for sac"),
         ("algo.real_data_share=1.5", "algo.real_data_share must lie in \\[0, 1\\], got 1.5"),
         ("algo.real_data_share=-0.1", "algo.real_data_share must lie in \\[0, 1\\], got -0.1"),
+        ("algo.normalizer_refresh=keep", "algo.normalizer_refresh must be one of .*, got 'keep'"),
     ],
 )
 def test_bad_learner_settings_are_refused_by_name(override, match):

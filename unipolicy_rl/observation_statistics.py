@@ -120,12 +120,40 @@ def reexpress_linear(layer: nn.Linear, old_loc: torch.Tensor, old_scale: torch.T
     ``(o - new_loc) / new_scale``: ``W' = W diag(s1 / s0)``, ``b' = b + W (m1 - m0) / s0``."""
     if layer.in_features != old_loc.numel():
         raise ValueError(f"the first layer reads {layer.in_features} inputs, the normaliser {old_loc.numel()}")
+    reexpress_weights(layer.weight, layer.bias, old_loc, old_scale, new_loc, new_scale)
+
+
+def reexpress_weights(weight: torch.Tensor, bias: torch.Tensor | None, old_loc: torch.Tensor,
+                      old_scale: torch.Tensor, new_loc: torch.Tensor, new_scale: torch.Tensor) -> None:
+    """:func:`reexpress_linear` on the tensors of a linear map, in place: ``weight`` ``[..., out, in]``
+    (leading dimensions: stacked copies, as TorchRL's losses keep their critics) whose first
+    ``old_loc.numel()`` input columns read the normalised observation (a critic reads the action
+    after it, which stays as it is)."""
+    size = old_loc.numel()
+    if weight.shape[-1] < size:
+        raise ValueError(f"the layer reads {weight.shape[-1]} inputs, fewer than the normaliser's {size}")
     with torch.no_grad():
-        weight = layer.weight.double()
+        columns = weight[..., :size].double()
         shift = ((new_loc - old_loc) / old_scale).double()
-        if layer.bias is not None:
-            layer.bias.add_((weight @ shift).to(layer.bias.dtype))
-        layer.weight.copy_((weight * (new_scale / old_scale).double()).to(layer.weight.dtype))
+        if bias is not None:
+            bias.add_((columns @ shift).to(bias.dtype))
+        weight[..., :size] = (columns * (new_scale / old_scale).double()).to(weight.dtype)
+
+
+def reexpress_running_statistics(running_mean: torch.Tensor, running_var: torch.Tensor, old_loc: torch.Tensor,
+                                 old_scale: torch.Tensor, new_loc: torch.Tensor, new_scale: torch.Tensor) -> None:
+    """Rewrites a batch (re)normalisation layer's running statistics of its first ``old_loc.numel()``
+    inputs, in place, for inputs read as ``(o - new_loc) / new_scale`` instead of ``(o - old_loc) /
+    old_scale``. The new input is ``a x + b`` of the old, ``a = s0 / s1``, ``b = (m0 - m1) / s1``,
+    so the running mean becomes ``a mu + b`` and the variance ``a^2 var``: the layer's output in
+    evaluation mode, and its renormalisation corrections in training (a batch's own statistics
+    move with its inputs), stay the same."""
+    size = old_loc.numel()
+    with torch.no_grad():
+        a = (old_scale / new_scale).double()
+        b = ((old_loc - new_loc) / new_scale).double()
+        running_mean[..., :size] = (running_mean[..., :size].double() * a + b).to(running_mean.dtype)
+        running_var[..., :size] = (running_var[..., :size].double() * a ** 2).to(running_var.dtype)
 
 
 def _input_reader(network: nn.Module):

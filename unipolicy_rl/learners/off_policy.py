@@ -14,10 +14,15 @@ fitted on that real data, as MBPO's steps follow its rollouts.
 
 Transitions are stored with their raw observations and normalised when a minibatch is drawn,
 with the current statistics: an old transition is seen the way the current policy would see it.
-A refresh therefore only moves the normaliser (there is no first layer to re-express once the
-critics read the action beside the observation); its effect on the policy is logged as the KL
-between the squashed Gaussians before and after (tanh is a bijection, so that KL is the one of
-the Gaussians under it).
+How a refresh treats the networks is ``normalizer_refresh``: ``jump`` only moves the normaliser,
+so the actor and every critic compute another function of the raw observation from then on;
+``preserve`` re-expresses what first reads the normalised observation in the new coordinates,
+as TRPO's refresh does: the actor's first linear layer, and in every critic (online and target,
+stacked as TorchRL's loss keeps them) the observation's columns of its first linear layer or,
+with batch renormalisation (CrossQ), its input layer's running statistics. The action's columns
+stay as they are. The effect on the policy is logged as the KL between the squashed Gaussians
+before and after (tanh is a bijection, so that KL is the one of the Gaussians under it): 0 to
+float precision with ``preserve``.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torch import nn
 from torch.distributions import Normal, kl_divergence
 from torchrl.data import Bounded, LazyTensorStorage, ReplayBuffer
 from torchrl.envs.transforms import ObservationNorm
@@ -36,8 +42,9 @@ from torchrl.objectives import CrossQLoss, LossModule, REDQLoss, SACLoss, SoftUp
 from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.collectors.real import is_imagined
 from unipolicy_rl.learners.base import observation_probe, policy_state
-from unipolicy_rl.networks import make_q_network
-from unipolicy_rl.observation_statistics import ObservationStatistics
+from unipolicy_rl.networks import WarmedUpBatchRenorm1d, make_q_network
+from unipolicy_rl.observation_statistics import (REFRESH_MODES, ObservationStatistics, reexpress_linear,
+                                                 reexpress_running_statistics, reexpress_weights)
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION
 
 LOSSES = ("sac", "crossq", "redq")
@@ -70,6 +77,9 @@ class OffPolicySettings:
             transitions, the rest from the model's branches (MBPO: 0.05).
         model_buffer_capacity: model-based runs: imagined transitions kept (FIFO: the branches of
             the latest fits, so the model data follow the latest models, as in MBPO).
+        normalizer_refresh: ``jump`` (only the normaliser moves between epochs) or ``preserve``
+            (the actor's and critics' first layers are re-expressed so that their outputs stay
+            the same; see the module docstring).
     """
 
     loss: str = "sac"
@@ -91,8 +101,11 @@ class OffPolicySettings:
     target_entropy: float | str = "auto"
     real_data_share: float = 0.05
     model_buffer_capacity: int = 100_000
+    normalizer_refresh: str = "jump"
 
     def __post_init__(self) -> None:
+        if self.normalizer_refresh not in REFRESH_MODES:
+            raise ValueError(f"algo.normalizer_refresh must be one of {REFRESH_MODES}, got {self.normalizer_refresh!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"algo.loss must be one of {LOSSES}, got {self.loss!r}")
         for name in ("batch_size", "buffer_capacity", "model_buffer_capacity", "num_critics", "sampled_critics",
@@ -271,10 +284,36 @@ class OffPolicyLearner:
         probe = observation_probe(observations)
         with torch.no_grad():
             before = self._gaussian(probe)
+            old_loc, old_scale = self.normalizer.loc.clone(), self.normalizer.scale.clone()
             self.statistics.update(observations)
             self.statistics.copy_to(self.normalizer)
+            if self.settings.normalizer_refresh == "preserve":
+                self._reexpress(old_loc, old_scale, self.normalizer.loc, self.normalizer.scale)
             after = self._gaussian(probe)
         return {"train/refresh_kl": kl_divergence(before, after).sum(-1).mean().item()}
+
+    def _reexpress(self, old_loc: torch.Tensor, old_scale: torch.Tensor, new_loc: torch.Tensor,
+                   new_scale: torch.Tensor) -> None:
+        """The preserving refresh: the actor's first linear layer (its parameters are the loss's
+        too) and the first layer of every critic, online and target, in the new coordinates."""
+        reexpress_linear(first_layer(self.actor, nn.Linear)[1], old_loc, old_scale, new_loc, new_scale)
+        key, layer = first_layer(self.loss.qvalue_network, (nn.Linear, WarmedUpBatchRenorm1d))
+        rewritten = set()
+        for name in ("qvalue_network_params", "target_qvalue_network_params"):
+            params = getattr(self.loss, name, None)
+            if params is None:
+                continue
+            first = params.get(key)
+            # Without a target network (CrossQ) TorchRL's "target" parameters are the online ones.
+            storage = first["running_mean" if "running_mean" in first.keys() else "weight"].data_ptr()
+            if storage in rewritten:
+                continue
+            rewritten.add(storage)
+            if isinstance(layer, nn.Linear):
+                reexpress_weights(first["weight"], first.get("bias", None), old_loc, old_scale, new_loc, new_scale)
+            else:
+                reexpress_running_statistics(first["running_mean"], first["running_var"], old_loc, old_scale,
+                                             new_loc, new_scale)
 
     def _gaussian(self, observations: TensorDictBase) -> Normal:
         """The policy's Gaussian before its tanh, on raw observations."""
@@ -309,3 +348,12 @@ class OffPolicyLearner:
             load_compact_state(self.model_buffer, state["model_buffer"])
         self.gradient_steps = int(state["gradient_steps"])
         self.owed_steps = float(state["owed_steps"])
+
+
+def first_layer(network: nn.Module, kinds: type | tuple[type, ...]) -> tuple[tuple[str, ...], nn.Module]:
+    """(its key in the network's parameters, as TorchRL's losses keep them, and the layer): the first
+    submodule of ``network`` of one of ``kinds``, the one that reads its input."""
+    for name, module in network.named_modules():
+        if isinstance(module, kinds):
+            return tuple(name.split(".")), module
+    raise ValueError(f"{type(network).__name__} has no {kinds} layer to re-express")
