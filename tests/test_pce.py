@@ -614,3 +614,52 @@ def test_the_basis_fitted_is_set_by_the_member_that_sees_the_fewest_rows():
         assert torch.isfinite(model.coefficients).all() and (model.coefficients[:, int(model.fitted_terms):] == 0).all()
         fewest.append(int(samples.min()))
     assert min(fewest) < model.terms  # some draw left a member fewer rows than the whole basis has terms
+
+
+def test_imagined_branches_draw_only_the_members_within_the_elite_tolerance_of_the_best():
+    """A bootstrap member fitted on a few episodes can be far worse than the plain fit on held-out
+    rows; with ``elite_tolerance`` the members whose validation error is more than that multiple
+    of the best are left out of the draw, and without it every member is drawn."""
+    from test_world_models import TOY, toy_transitions
+
+    from unipolicy_rl.world_models import PCEDynamics
+    from unipolicy_rl.world_models.trainer import EPISODE_START
+
+    data = toy_transitions(530, 0)
+    data.set(EPISODE_START, torch.arange(530) % 100 == 0)  # 6 episodes, 5 of them in training
+    train, validation = torch.arange(430), torch.arange(430, 530)
+    design = torch.zeros(4000, 2)
+    left_out = 0
+    for seed in range(10):
+        model = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                            interactions="all", members=3, elite_tolerance=1.2)
+        report = model.fit(data, train, validation, 2.0, torch.Generator().manual_seed(seed))
+        error = report.validation_error
+        expected = (error <= 1.2 * error.min()).nonzero().squeeze(1)
+        assert torch.equal(model.elites, expected) and report.elites == expected.tolist()
+        assert report.extras["elites"] == len(expected)
+        drawn = model.draw_members(design, torch.Generator().manual_seed(seed)).unique()
+        assert torch.equal(drawn, expected)
+        left_out += 3 - len(expected)
+    assert left_out > 0  # some draw of a few episodes made a member worse than 1.2x the best
+    every = PCEDynamics(TOY, action_dim=2, order=3, truncation="total_degree", max_interaction=None,
+                        interactions="all", members=3, elite_tolerance=None)
+    every.fit(data, train, validation, 2.0, torch.Generator().manual_seed(0))
+    assert every.draw_members(design, torch.Generator().manual_seed(0)).unique().tolist() == [0, 1, 2]
+
+
+def test_a_bad_elite_tolerance_is_refused_and_an_old_checkpoint_loads_every_member_as_elite():
+    from test_world_models import TOY
+
+    from unipolicy_rl.world_models import PCEDynamics
+
+    for bad in (0.5, -1.0, True, "1.5"):
+        with pytest.raises(ValueError, match=f"elite_tolerance must be a number >= 1 .*got {bad!r}"):
+            PCEDynamics(TOY, action_dim=2, elite_tolerance=bad)
+    model = PCEDynamics(TOY, action_dim=2, members=3, elite_tolerance=1.5)
+    state = model.state_dict()
+    del state["elite_mask"]
+    state["elites"] = torch.arange(3)  # as checkpoints before the elite mask kept them
+    model.elite_mask.fill_(False)
+    model.load_state_dict(state)
+    assert model.elites.tolist() == [0, 1, 2]

@@ -61,17 +61,19 @@ class SparsePCEDynamics(PCEDynamics):
         chunk_size: rows of the design matrix built at once while fitting (memory bound).
         lags: previous steps whose state change and action are candidate inputs too (PC-NARX,
             :mod:`~unipolicy_rl.world_models.pce.lags`); 0: none.
+        elite_tolerance: as :class:`PCEDynamics`'s (None: imagined branches draw every member).
     """
 
     def __init__(self, layout: StateLayout, action_dim: int, order: int = 5, truncation: str = "hyperbolic",
                  q: float = 0.5, max_interaction: int | None = 2, interactions: str = "controls", members: int = 3,
                  margin: float = 0.1, max_terms: int | None = 200, patience: int = 10, tolerance: float = 0.0,
-                 loo_samples: int = 4096, chunk_size: int = 16384, lags: int = 0) -> None:
+                 loo_samples: int = 4096, chunk_size: int = 16384, lags: int = 0,
+                 elite_tolerance: float | None = 1.5) -> None:
         check_sparsity(max_terms, patience, tolerance)
         if not (isinstance(loo_samples, int) and not isinstance(loo_samples, bool) and loo_samples >= 2):
             raise ValueError(f"loo_samples must be an integer >= 2, got {loo_samples!r}")
         super().__init__(layout, action_dim, order, truncation, q, max_interaction, interactions, members, margin,
-                         ridge=0.0, chunk_size=chunk_size, lags=lags)
+                         ridge=0.0, chunk_size=chunk_size, lags=lags, elite_tolerance=elite_tolerance)
         self.max_terms, self.patience, self.tolerance, self.loo_samples = max_terms, patience, tolerance, loo_samples
 
     @torch.no_grad()
@@ -95,8 +97,9 @@ class SparsePCEDynamics(PCEDynamics):
         self.fitted_terms.fill_(int(fit.selected.any(-1).any(0).sum()))
         self.residual_std.copy_(fit.residual_rms.float())
         error = self.validation_error(inputs[validation], targets[validation], targets[train])
+        self.set_elites(error)
         scale = targets[train].var(0, correction=0).clamp_min(1e-12)
         train_error = float((fit.residual_rms[0].float().pow(2) / scale).mean())
         return FitReport(1, train_error, error, [int(e) for e in self.elites], 0, time.perf_counter() - started,
-                         extras={"mean_terms": float(fit.terms.float().mean()),
+                         extras={"elites": int(self.elite_mask.sum()), "mean_terms": float(fit.terms.float().mean()),
                                  "loo_error": float(fit.loo_error[0].mean())})
