@@ -87,6 +87,16 @@ def test_batch_renormalisation_keeps_its_corrections_clamped_long_after_its_warm
     assert int(layer.num_batches_tracked) == 5
 
 
+def test_crossq_critics_renormalise_after_the_configured_warm_up():
+    learner = make_learner(config("crossq", "algo.batch_renorm_warmup=123"), 3, 1)
+    layers = [m for m in learner.loss.qvalue_network.modules() if isinstance(m, WarmedUpBatchRenorm1d)]
+    assert len(layers) == 2 and all(layer.warmup_steps == 123 for layer in layers)  # input, one hidden layer
+    params = learner.loss.qvalue_network_params
+    key = next(k for k in params.keys(True, True) if k[-1] == "num_batches_tracked")
+    learner.update(transitions(200, 3, 1))  # 200 gradient steps: the count stops at the warm-up
+    assert (params.get(key) == 123).all()
+
+
 def test_the_temperature_holds_the_policys_entropy_at_its_target():
     """One action, a reward peaked at 0.5: the actor would narrow without end, the learned
     temperature stops it where the entropy meets the target (``auto``: -1 for one action)."""
@@ -174,6 +184,7 @@ def test_a_preserving_refresh_leaves_the_actor_and_every_critic_as_they_were(alg
         ("algo.real_data_share=1.5", "algo.real_data_share must lie in \\[0, 1\\], got 1.5"),
         ("algo.real_data_share=-0.1", "algo.real_data_share must lie in \\[0, 1\\], got -0.1"),
         ("algo.normalizer_refresh=keep", "algo.normalizer_refresh must be one of .*, got 'keep'"),
+        ("algo.batch_renorm_warmup=-1", "algo.batch_renorm_warmup must be an integer >= 0, got -1"),
     ],
 )
 def test_bad_learner_settings_are_refused_by_name(override, match):

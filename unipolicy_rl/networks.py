@@ -174,21 +174,28 @@ def make_q_network(
     batch_renorm: bool = False,
     *,
     observation_key: str = "observation",
+    batch_renorm_warmup: int = 10_000,
 ) -> ValueOperator:
     """Action-value network ``(observation, action) -> state_action_value``.
 
     ``batch_renorm`` puts batch renormalisation (:class:`WarmedUpBatchRenorm1d`) after the input
-    and every hidden layer, as CrossQ does so that it can drop the target network.
+    and every hidden layer, as CrossQ does so that it can drop the target network; its
+    corrections start after ``batch_renorm_warmup`` training batches (plain batch normalisation
+    before; TorchRL's default 10,000, the CrossQ reference implementations' 100,000).
     """
+    if isinstance(batch_renorm_warmup, bool) or not isinstance(batch_renorm_warmup, int) or batch_renorm_warmup < 0:
+        raise ValueError(f"batch_renorm_warmup must be an integer >= 0, got {batch_renorm_warmup!r}")
     try:
         activation_class = ACTIVATIONS[activation]
     except KeyError as err:
         raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
-    layers: list[nn.Module] = [WarmedUpBatchRenorm1d(observation_dim + action_dim)] if batch_renorm else []
+    def renormalisation(width: int) -> list[nn.Module]:
+        return [WarmedUpBatchRenorm1d(width, warmup_steps=batch_renorm_warmup)] if batch_renorm else []
+
+    layers: list[nn.Module] = renormalisation(observation_dim + action_dim)
     width = observation_dim + action_dim
     for hidden in hidden_sizes:
-        renorm = [WarmedUpBatchRenorm1d(hidden)] if batch_renorm else []
-        layers += [nn.Linear(width, hidden), *renorm, activation_class()]
+        layers += [nn.Linear(width, hidden), *renormalisation(hidden), activation_class()]
         width = hidden
     layers.append(nn.Linear(width, 1))
     return ValueOperator(_Concatenated(nn.Sequential(*layers)), in_keys=[observation_key, "action"],

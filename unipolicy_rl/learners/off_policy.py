@@ -71,6 +71,8 @@ class OffPolicySettings:
             network (CrossQ).
         actor_update_every: one actor and temperature step every this many critic steps (CrossQ: 3).
         batch_renorm: batch renormalisation in the critics (CrossQ).
+        batch_renorm_warmup: training batches before batch renormalisation's corrections start
+            (CrossQ; TorchRL's default 10,000, the CrossQ reference implementations' 100,000).
         alpha_init: the entropy temperature's start; it is learned towards ``target_entropy``.
         target_entropy: the policy's entropy target (``auto``: minus the number of actions).
         real_data_share: model-based runs (MBPO): the share of each minibatch drawn from real
@@ -97,6 +99,7 @@ class OffPolicySettings:
     target_update_rate: float | None = 0.005
     actor_update_every: int = 1
     batch_renorm: bool = False
+    batch_renorm_warmup: int = 10_000
     alpha_init: float = 1.0
     target_entropy: float | str = "auto"
     real_data_share: float = 0.05
@@ -113,9 +116,10 @@ class OffPolicySettings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"algo.{name} must be an integer >= 1, got {value!r}")
-        if isinstance(self.learning_starts, bool) or not isinstance(self.learning_starts, int) \
-                or self.learning_starts < 0:
-            raise ValueError(f"algo.learning_starts must be an integer >= 0, got {self.learning_starts!r}")
+        for name in ("learning_starts", "batch_renorm_warmup"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"algo.{name} must be an integer >= 0, got {value!r}")
         if not (isinstance(self.updates_per_step, (int, float)) and self.updates_per_step >= 1):
             raise ValueError(f"algo.updates_per_step (the update-to-data ratio) must be >= 1, got "
                              f"{self.updates_per_step!r}")
@@ -163,7 +167,8 @@ def make_loss(settings: OffPolicySettings, actor: TensorDictModuleBase, observat
               action_dim: int) -> LossModule:
     """TorchRL's loss ``settings.loss`` names, its critics built here, reading the normalised observation."""
     critic = make_q_network(observation_dim, action_dim, tuple(settings.critic_hidden), settings.activation,
-                            settings.batch_renorm, observation_key=NORMALIZED_OBSERVATION)
+                            settings.batch_renorm, observation_key=NORMALIZED_OBSERVATION,
+                            batch_renorm_warmup=settings.batch_renorm_warmup)
     spec = Bounded(-1.0, 1.0, shape=(action_dim,))
     common = {"num_qvalue_nets": settings.num_critics, "loss_function": "l2", "alpha_init": settings.alpha_init,
               "action_spec": spec, "target_entropy": settings.target_entropy}
