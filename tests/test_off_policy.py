@@ -164,10 +164,10 @@ def test_a_preserving_refresh_leaves_the_actor_and_every_critic_as_they_were(alg
         shifted["observation"] = shifted["observation"] * 5 + 3  # statistics far from the first ones
         metrics = learner.refresh_observation_normalizer(shifted)
         after = network_outputs(learner, observations, actions)
-        changes[mode] = max(float((a - b).abs().max().detach()) for a, b in zip(after, before))
+        changes[mode] = max(float((a - b).abs().max().detach()) for a, b in zip(after, before, strict=True))
         if mode == "preserve":
             assert metrics["train/refresh_kl"] < 1e-8
-            for a, b in zip(after, before):
+            for a, b in zip(after, before, strict=True):
                 torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
         else:
             assert metrics["train/refresh_kl"] > 1e-3

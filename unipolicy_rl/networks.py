@@ -189,6 +189,7 @@ def make_q_network(
         activation_class = ACTIVATIONS[activation]
     except KeyError as err:
         raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}") from err
+
     def renormalisation(width: int) -> list[nn.Module]:
         return [WarmedUpBatchRenorm1d(width, warmup_steps=batch_renorm_warmup)] if batch_renorm else []
 

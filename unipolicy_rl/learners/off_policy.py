@@ -43,8 +43,13 @@ from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_sta
 from unipolicy_rl.collectors.real import is_imagined
 from unipolicy_rl.learners.base import observation_probe, policy_state
 from unipolicy_rl.networks import WarmedUpBatchRenorm1d, make_q_network
-from unipolicy_rl.observation_statistics import (REFRESH_MODES, ObservationStatistics, reexpress_linear,
-                                                 reexpress_running_statistics, reexpress_weights)
+from unipolicy_rl.observation_statistics import (
+    REFRESH_MODES,
+    ObservationStatistics,
+    reexpress_linear,
+    reexpress_running_statistics,
+    reexpress_weights,
+)
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION
 
 LOSSES = ("sac", "crossq", "redq")
