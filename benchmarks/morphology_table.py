@@ -15,7 +15,9 @@ displacement over the specialist's on the morphologies it trained on and on the 
 (zero-shot), and how many of its training morphologies it walks (grid mean >= 1 m); then one
 line per entry and morphology. Writes ``morphology_table.csv`` and ``morphologies.png``: each
 morphology rendered in PyBullet (at the mean design), titled with its side and every entry's
-and its specialist's grid mean (``--no-pictures`` skips the renders).
+and its specialist's grid mean (``--no-pictures`` skips the renders). Every specialist's final
+evaluation comes first (and ``specialists.csv``), so a study whose universal runs have not
+finished still shows what it has measured.
 """
 
 from __future__ import annotations
@@ -30,7 +32,14 @@ from pathlib import Path
 import numpy as np
 import pybullet
 
-from unipolicy_rl.report.morphologies import compare, format_table, is_grammar_run, summarize
+from unipolicy_rl.report.morphologies import (
+    compare,
+    format_specialists,
+    format_table,
+    is_grammar_run,
+    specialist_scores,
+    summarize,
+)
 from unipolicy_rl.report.runs import ReportError, load_runs
 from unipolicy_rl.robots import load_robot
 from unipolicy_rl.robots.grammar import describe
@@ -106,12 +115,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 1
     comparisons = compare(runs)
-    if not comparisons:
-        print("error: no universal grammar run with a final evaluation (evaluation/morphologies.csv) under "
+    specialists = specialist_scores(runs)
+    if not comparisons and not specialists:
+        print("error: no grammar run with a final evaluation (evaluation/morphologies.csv) under "
               f"{', '.join(map(str, args.roots))}", file=sys.stderr)
         return 1
-    print(format_table(comparisons, summarize(comparisons)))
     args.out.mkdir(parents=True, exist_ok=True)
+    if specialists:
+        print(format_specialists(specialists) + "\n")
+        with (args.out / "specialists.csv").open("w", newline="") as file:
+            writer = csv.DictWriter(file, fieldnames=list(asdict(specialists[0])))
+            writer.writeheader()
+            writer.writerows(asdict(score) for score in specialists)
+    if not comparisons:
+        print("no universal run has a final evaluation yet: the specialists only")
+        return 0
+    print(format_table(comparisons, summarize(comparisons)))
     with (args.out / "morphology_table.csv").open("w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=[*asdict(comparisons[0]), "ratio"])
         writer.writeheader()

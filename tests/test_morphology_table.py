@@ -108,3 +108,26 @@ def test_the_benchmark_prints_the_table_from_real_split_sides(tmp_path, capsys):
     assert "| token_mlp, 2 morphologies | - (0 compared) | 2/2 | 50% (1 compared) | 2.00 m |" in printed
     assert printed.count("train side, not trained on") == 1  # the third training morphology
     assert (tmp_path / "out" / "morphologies.png").stat().st_size > 0
+
+
+def test_the_specialists_are_listed_before_any_universal_run_has_finished(tmp_path, capsys):
+    """A study whose universal runs have not finished shows its specialists (table and CSV)."""
+    write_run(tmp_path, "spec_a", "token_mlp", {"a": 4.0}, specialist=0)
+    write_run(tmp_path, "spec_b", "token_mlp", {"b": 0.5}, specialist=1)
+    OmegaConf.save(OmegaConf.create({"run_name": "se-trpo", "seed": 3, "source": {"name": "se"},
+                                     "policy": {"name": "token_mlp"},
+                                     "robot": {"kind": "grammar", "specialist": 0, "morphologies": "held_out"}}),
+                   write_run(tmp_path, "spec_x", "token_mlp", {"x": 2.0}, specialist=0) / ".hydra" / "config.yaml")
+    runs = [load_run(path, path.name) for path in sorted(tmp_path.iterdir())]
+    scores = table.specialist_scores(runs)
+    assert [(s.side, s.index, s.seed, s.derivation, s.mean_displacement) for s in scores] == [
+        ("train", 0, 0, "a", 4.0), ("train", 1, 0, "b", 0.5), ("held_out", 0, 3, "x", 2.0)]
+    assert "2 of 3 specialists walk" in table.format_specialists(scores)
+    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out"), "--no-pictures"]) == 0
+    printed = capsys.readouterr().out
+    assert "| held_out | 0 | 3 | 7 | 2.00 m | 1.00 m | x |" in printed and "the specialists only" in printed
+    with (tmp_path / "out" / "specialists.csv").open(newline="") as file:
+        assert [row["derivation"] for row in csv.DictReader(file)] == ["a", "b", "x"]

@@ -75,6 +75,43 @@ class EntrySummary:
     held_out_mean: float      # median grid mean over the held-out morphologies (with or without specialists)
 
 
+@dataclass(frozen=True)
+class SpecialistScore:
+    """One specialist run's final evaluation of its robot."""
+
+    side: str            # the split's side it trained on (robot.morphologies: train or held_out)
+    index: int           # its morphology's index on that side (robot.specialist)
+    seed: int
+    links: int
+    mean_displacement: float
+    worst_displacement: float
+    derivation: str
+
+
+def specialist_scores(runs: Iterable[Run]) -> list[SpecialistScore]:
+    """Every specialist run's final evaluation (runs without one yet are left out), by side,
+    index and seed: what a study has measured before any universal run has finished."""
+    scores = []
+    for run in filter(is_specialist, runs):
+        robot = run.config["robot"]
+        for score in final_scores(run):
+            scores.append(SpecialistScore(str(robot.get("morphologies", "train")), int(robot["specialist"]),
+                                          int(run.config.get("seed", 0)), score.links, score.mean_displacement,
+                                          score.worst_displacement, score.derivation))
+    return sorted(scores, key=lambda score: (score.side != "train", score.side, score.index, score.seed))
+
+
+def format_specialists(scores: Sequence[SpecialistScore]) -> str:
+    """One line per specialist run, and how many of them walk (grid mean >= ``WALKS`` m)."""
+    lines = ["| side | morphology | seed | links | grid mean | worst design | derivation |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {score.side} | {score.index} | {score.seed} | {score.links} | {score.mean_displacement:.2f} m | "
+              f"{score.worst_displacement:.2f} m | {score.derivation} |" for score in scores]
+    walking = sum(score.mean_displacement >= WALKS for score in scores)
+    lines.append(f"\n{walking} of {len(scores)} specialists walk their robot's grid (mean >= {WALKS:g} m)")
+    return "\n".join(lines)
+
+
 def final_scores(run: Run) -> list[MorphologyScore]:
     """The run's final evaluation per morphology (the last row of each derivation: an evaluation
     rerun appends); empty when the run has none."""
