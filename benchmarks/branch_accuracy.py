@@ -150,7 +150,8 @@ def fit_and_measure(spec: str, data: TensorDict, fit_transitions: int, test_tran
     fit, test = split(in_model_view(model, data), fit_transitions, test_transitions)
     report = trainer.fit(model, fit, torch.Generator().manual_seed(seed))
     print(f"{spec}: {model.__class__.__name__}, fit {report.epochs} epoch(s) in {report.seconds:.1f} s, "
-          f"validation MSE (standardised) median {report.validation_error.median():.3f}")
+          f"validation MSE (standardised) median {report.validation_error.median():.3f}, per member "
+          f"{', '.join(f'{error:.3f}' for error in report.validation_error.tolist())}")
     results = {}
     for deterministic in (True, False) if sampled else (True,):
         for horizon in horizons:

@@ -183,8 +183,6 @@ def make_q_network(
     corrections start after ``batch_renorm_warmup`` training batches (plain batch normalisation
     before; TorchRL's default 10,000, the CrossQ reference implementations' 100,000).
     """
-    if isinstance(batch_renorm_warmup, bool) or not isinstance(batch_renorm_warmup, int) or batch_renorm_warmup < 0:
-        raise ValueError(f"batch_renorm_warmup must be an integer >= 0, got {batch_renorm_warmup!r}")
     try:
         activation_class = ACTIVATIONS[activation]
     except KeyError as err:

@@ -46,9 +46,9 @@ from unipolicy_rl.networks import WarmedUpBatchRenorm1d, make_q_network
 from unipolicy_rl.observation_statistics import (
     REFRESH_MODES,
     ObservationStatistics,
-    reexpress_linear,
     reexpress_running_statistics,
     reexpress_weights,
+    refresh_normalizer,
 )
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION
 
@@ -296,29 +296,21 @@ class OffPolicyLearner:
             before = self._gaussian(probe)
             old_loc, old_scale = self.normalizer.loc.clone(), self.normalizer.scale.clone()
             self.statistics.update(observations)
-            self.statistics.copy_to(self.normalizer)
+            # TRPO's refresh for the actor (and the mode's check); the critics, stacked, below
+            refresh_normalizer(self.statistics, self.normalizer, (self.actor,), self.settings.normalizer_refresh)
             if self.settings.normalizer_refresh == "preserve":
-                self._reexpress(old_loc, old_scale, self.normalizer.loc, self.normalizer.scale)
+                self._reexpress_critics(old_loc, old_scale, self.normalizer.loc, self.normalizer.scale)
             after = self._gaussian(probe)
         return {"train/refresh_kl": kl_divergence(before, after).sum(-1).mean().item()}
 
-    def _reexpress(self, old_loc: torch.Tensor, old_scale: torch.Tensor, new_loc: torch.Tensor,
-                   new_scale: torch.Tensor) -> None:
-        """The preserving refresh: the actor's first linear layer (its parameters are the loss's
-        too) and the first layer of every critic, online and target, in the new coordinates."""
-        reexpress_linear(first_layer(self.actor, nn.Linear)[1], old_loc, old_scale, new_loc, new_scale)
+    def _reexpress_critics(self, old_loc: torch.Tensor, old_scale: torch.Tensor, new_loc: torch.Tensor,
+                           new_scale: torch.Tensor) -> None:
+        """The preserving refresh of every critic's first layer, online and target (CrossQ has no
+        target network: TorchRL's "target" parameters there are the online ones)."""
         key, layer = first_layer(self.loss.qvalue_network, (nn.Linear, WarmedUpBatchRenorm1d))
-        rewritten = set()
-        for name in ("qvalue_network_params", "target_qvalue_network_params"):
-            params = getattr(self.loss, name, None)
-            if params is None:
-                continue
-            first = params.get(key)
-            # Without a target network (CrossQ) TorchRL's "target" parameters are the online ones.
-            storage = first["running_mean" if "running_mean" in first.keys() else "weight"].data_ptr()
-            if storage in rewritten:
-                continue
-            rewritten.add(storage)
+        targets = ("target_qvalue_network_params",) if self.target_update is not None else ()
+        for name in ("qvalue_network_params", *targets):
+            first = getattr(self.loss, name).get(key)
             if isinstance(layer, nn.Linear):
                 reexpress_weights(first["weight"], first.get("bias", None), old_loc, old_scale, new_loc, new_scale)
             else:
