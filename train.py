@@ -17,6 +17,7 @@ stopping rule says stop -> evaluation -> checkpoint. Ends with the saved policy 
 from __future__ import annotations
 
 import time
+from functools import partial
 from pathlib import Path
 
 import hydra
@@ -106,7 +107,10 @@ def main(cfg: DictConfig) -> dict:
                                      reseed(cfg.seed, epoch, MODEL_FIT),
                                      background=world.imagination.settings.background_fit and fitted_before)
                 # ---- Policy training on imagined branches, until the stopping rule says stop
-                imagined = world.imagination.epoch(epoch, world.buffer.contents(), learner.policy)
+                # (stopping.kind=real: each check measures the policy's surrogate on this epoch's real batch)
+                real_surrogate = (partial(learner.real_surrogate, batch)
+                                  if world.imagination.stopping.kind == "real" else None)
+                imagined = world.imagination.epoch(epoch, world.buffer.contents(), learner.policy, real_surrogate)
                 for rollout in imagined:
                     started = time.perf_counter()
                     row = {columns.IMAGINED: 1.0, **learner.update(rollout), **imagined_metrics(rollout)}

@@ -154,3 +154,39 @@ def test_the_default_learner_s_numbers_have_not_moved():
     if not torch.__version__.startswith("2.13"):
         pytest.skip(f"the recorded numbers are torch 2.13's; this is {torch.__version__}")
     assert numbers == pytest.approx(DEFAULT_LEARNER_FINGERPRINT, rel=RELATIVE_TOLERANCE)
+
+
+def _collected_batch(learner, seed: int = 1) -> TensorDict:
+    """A batch as a real epoch gives it: two 64-step rows the learner's own policy acted in."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    generator = torch.Generator().manual_seed(seed)
+    batch = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1}, [2, 64])
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        batch = learner.policy(batch)
+    done = torch.zeros(2, 64, 1, dtype=torch.bool)
+    done[:, 31::32] = True
+    batch["next"] = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1,
+                                "reward": torch.randn(2, 64, 1, generator=generator), "done": done,
+                                "terminated": torch.zeros_like(done)}, [2, 64])
+    return batch
+
+
+def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
+    """Zero at the collecting policy (standardised advantages), the step's own surrogate improvement
+    after the update, unchanged by a preserving refresh of the normaliser (it re-normalises the raw
+    observations), and refused on a batch no update has given advantages."""
+    learner = _trpo_learner()
+    batch = _collected_batch(learner)
+    with pytest.raises(KeyError, match="'advantage' from a TRPO update"):
+        learner.real_surrogate(batch)
+    learner.normalizer(batch["next"])
+    learner.loss.compute_advantage(batch)
+    assert abs(learner.real_surrogate(batch)) < 1e-6
+    metrics = learner.update(batch)
+    assert metrics["train/step_accepted"] == 1.0
+    after_step = learner.real_surrogate(batch)
+    assert after_step == pytest.approx(metrics["train/surrogate_improvement"], rel=1e-4)
+    assert after_step > 0
+    learner.refresh_observation_normalizer(_collected_batch(learner, seed=2))  # preserve: the default
+    assert learner.real_surrogate(batch) == pytest.approx(after_step, rel=1e-4)

@@ -410,6 +410,21 @@ def test_a_fit_in_the_background_trains_the_policy_on_the_previous_fit_and_resum
                                load_checkpoint(tmp_path / "d" / "checkpoint.pt"), world_model=True)
 
 
+def test_the_real_rule_keeps_only_the_imagined_updates_the_real_batch_agrees_with(tmp_path):
+    result = run_train(*MOE_TINY, "epochs=2", "imagination.stopping.kind=real", "imagination.train_on_real=true",
+                       "imagination.stopping.check_every=1", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr
+    with (tmp_path / "metrics.csv").open() as file:
+        real = [row for row in csv.DictReader(file) if row["imagined"] == "0.0"]
+    assert len(real) == 2
+    for row in real:
+        taken, kept = float(row["model/policy_updates"]), float(row["model/kept_updates"])
+        assert 1 <= taken <= 4 and 0 <= kept <= taken
+        # A rule that stopped early undid the last check's updates; one that ran to the end kept all.
+        assert kept == taken or kept == taken - 1
+        assert float(row["model/real_surrogate_gain"]) >= 0
+
+
 # source=moe on robot=grammar: the ensemble conditioned on the morphology, tiny, beside the padded MLP.
 GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "robot.split.train_size=3",
                     "robot.split.held_out_size=2", "evaluation.every_steps=0", "imagination.steps_per_batch=40",
@@ -453,6 +468,8 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
         ("imagination.background_fit=maybe", "background_fit must be true or false, got 'maybe'"),
         ("imagination.background_fit=true world_model.trainer.num_threads=2",
          "set world_model.trainer.num_threads=null (got 2)"),
+        ("imagination.stopping.kind=real", "stopping.kind=real checks the imagined updates against the epoch's "
+                                           "real batch"),
     ],
 )
 def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):

@@ -358,7 +358,7 @@ def test_truncated_branch_end_bootstraps_from_the_critic():
 
 
 def _tiny_model_based(stopping: StoppingRule, epochs: int = 2, deterministic: bool = False,
-                      start_epochs: int | None = None):
+                      start_epochs: int | None = None, real_surrogate=None):
     """A model-based run's parts on a tiny robot batch: real epochs in a replay buffer, a model fitted
     on it each epoch, and the imagination; returns the parts and, per epoch, its imagined batches."""
     from functools import partial
@@ -377,7 +377,7 @@ def _tiny_model_based(stopping: StoppingRule, epochs: int = 2, deterministic: bo
     reference = BatchedWalkerEnv(1, full_state=True)
     reference.close()
     settings = ImaginationSettings(steps_per_batch=40, horizon=HorizonSchedule(4, 4), deterministic=deterministic,
-                                   start_epochs=start_epochs, stopping=stopping)
+                                   start_epochs=start_epochs, stopping=stopping, train_on_real=stopping.kind == "real")
     imagination = Imagination(model, reference, RewardWeights(), settings, seed=0, episode_length=10)
     buffer = TransitionBuffer(1000, model.layout.from_full)
 
@@ -386,14 +386,14 @@ def _tiny_model_based(stopping: StoppingRule, epochs: int = 2, deterministic: bo
             for batch in real:
                 buffer.extend(batch, real.epoch)
                 ModelTrainer(max_epochs=2).fit(model, buffer.contents(), torch.Generator().manual_seed(real.epoch))
-                imagined = imagination.epoch(real.epoch, buffer.contents(), policy)
+                imagined = imagination.epoch(real.epoch, buffer.contents(), policy, real_surrogate)
                 yield batch, imagined
 
-    return real, buffer, model, epochs_of_imagination()
+    return real, buffer, model, epochs_of_imagination(), policy
 
 
 def test_imagination_yields_truncated_branches_of_the_horizon_until_the_rule_stops():
-    real, buffer, _, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=3))
+    real, buffer, _, epochs, _ = _tiny_model_based(StoppingRule(kind="fixed", max_updates=3))
     shapes, counts = set(), []
     for batch, imagined in epochs:
         assert not is_imagined(batch)
@@ -410,7 +410,7 @@ def test_imagination_yields_truncated_branches_of_the_horizon_until_the_rule_sto
 
 
 def test_imagined_starts_can_be_kept_to_the_latest_real_epochs():
-    real, buffer, _, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=3, start_epochs=1)
+    real, buffer, _, epochs, _ = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=3, start_epochs=1)
     for _, imagined in epochs:
         batch = next(iter(imagined))
         data = buffer.contents()
@@ -425,7 +425,7 @@ def test_imagined_starts_can_be_kept_to_the_latest_real_epochs():
 
 @pytest.mark.parametrize("deterministic", [True, False])
 def test_deterministic_imagination_follows_each_members_mean_prediction(deterministic):
-    _, _, model, epochs = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=1,
+    _, _, model, epochs, _ = _tiny_model_based(StoppingRule(kind="fixed", max_updates=1), epochs=1,
                                             deterministic=deterministic)
     _, imagined = next(epochs)
     batch = next(iter(imagined))
@@ -439,7 +439,7 @@ def test_deterministic_imagination_follows_each_members_mean_prediction(determin
 
 def _imagined_updates(returns_per_check, monkeypatch, max_updates=10, check_every=2):
     """How many updates an epoch runs when successive checks of the members' returns give these."""
-    _, _, _, epochs = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=max_updates, check_every=check_every,
+    _, _, _, epochs, _ = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=max_updates, check_every=check_every,
                                                      check_starts=4, check_horizon=3), epochs=1)
     _, imagined = next(epochs)
     checks = iter(torch.tensor(r, dtype=torch.float32) for r in returns_per_check)
@@ -470,9 +470,59 @@ def test_the_metrpo_comparison_counts_improvement_not_decline():
 def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():
     # The policy never changes between checks, so no member sees an improvement: the rule
     # stops each epoch at its first check, after check_every updates.
-    _, _, _, epochs = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=10, check_every=2, check_starts=4,
+    _, _, _, epochs, _ = _tiny_model_based(StoppingRule(kind="metrpo", max_updates=10, check_every=2, check_starts=4,
                                                      check_horizon=3))
     assert [sum(1 for _ in imagined) for _, imagined in epochs] == [2, 2]
+
+
+def _real_checked_epoch(surrogates, max_updates=10, check_every=2):
+    """An epoch under the ``real`` rule whose successive surrogate readings are ``surrogates`` (the
+    first before any update); each imagined "update" adds 1 to every weight of the policy. Returns
+    the updates taken, the epoch's metrics and the policy's first weight after the epoch."""
+    readings = iter(surrogates)
+    _, _, _, epochs, policy = _tiny_model_based(
+        StoppingRule(kind="real", max_updates=max_updates, check_every=check_every), epochs=1,
+        real_surrogate=lambda: next(readings))
+    _, imagined = next(epochs)
+    weight = next(policy.parameters())
+    first = weight.detach().clone()
+    taken = 0
+    for _ in imagined:
+        with torch.no_grad():
+            for parameter in policy.parameters():
+                parameter.add_(1.0)
+        taken += 1
+    return taken, imagined.metrics(), float((weight - first).flatten()[0])
+
+
+def test_the_real_rule_keeps_updates_while_the_real_surrogate_rises_and_undoes_the_last_check_s():
+    # Checks after 2 and 4 updates: a rise, then a fall: 4 updates taken, the policy back where it
+    # was after 2 (every weight +2), and the gain of the kept ones reported.
+    taken, metrics, moved = _real_checked_epoch([0.0, 0.3, 0.1])
+    assert taken == 4 and moved == pytest.approx(2.0)
+    assert metrics["model/kept_updates"] == 2.0 and metrics["model/policy_updates"] == 4.0
+    assert metrics["model/real_surrogate_gain"] == pytest.approx(0.3)
+    # A fall at the first check keeps none of the imagined updates.
+    taken, metrics, moved = _real_checked_epoch([0.0, -0.1])
+    assert taken == 2 and moved == pytest.approx(0.0) and metrics["model/kept_updates"] == 0.0
+    assert metrics["model/real_surrogate_gain"] == 0.0
+
+
+def test_the_real_rule_checks_the_updates_after_its_last_regular_check():
+    # max_updates=5, checks every 2: after 2 and 4, and once more after the fifth, which is undone.
+    taken, metrics, moved = _real_checked_epoch([0.0, 0.1, 0.2, 0.15], max_updates=5)
+    assert taken == 5 and moved == pytest.approx(4.0) and metrics["model/kept_updates"] == 4.0
+    # Rising to the end: all five kept.
+    taken, metrics, moved = _real_checked_epoch([0.0, 0.1, 0.2, 0.3], max_updates=5)
+    assert taken == 5 and moved == pytest.approx(5.0) and metrics["model/kept_updates"] == 5.0
+
+
+def test_the_real_rule_needs_the_real_batch_s_update_and_its_surrogate():
+    with pytest.raises(ValueError, match="stopping.kind=real .* set train_on_real=true"):
+        ImaginationSettings(stopping=StoppingRule(kind="real"))
+    _, _, _, epochs, _ = _tiny_model_based(StoppingRule(kind="real"), epochs=1)
+    with pytest.raises(ValueError, match="stopping.kind=real needs real_surrogate"):
+        next(epochs)
 
 
 def test_every_member_votes_in_the_metrpo_rule_not_only_the_elites():

@@ -6,6 +6,7 @@ from unipolicy_rl.collectors.imagination import (
     Imagination,
     ImaginationSettings,
     ImaginedEpoch,
+    RealCheck,
     StoppingRule,
     imagined_metrics,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "Imagination",
     "ImaginationSettings",
     "ImaginedEpoch",
+    "RealCheck",
     "RealEpochCollector",
     "ShutdownCompleteMultiSyncCollector",
     "StoppingRule",

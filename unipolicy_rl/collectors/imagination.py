@@ -8,8 +8,9 @@ step is truncated, never terminated, so the value estimator bootstraps from the 
 Optionally a branch ends earlier, at the step where the world model's members disagree about
 the next state past a threshold (MACURA's cut; :mod:`unipolicy_rl.world_models.disagreement`),
 truncated in the same way; TorchRL's rollout then restarts that row from a fresh real state.
-How many updates follow a fit is the stopping rule's call: a fixed number (the thesis), or
-ME-TRPO's check of the policy's return under every member.
+How many updates follow a fit is the stopping rule's call: a fixed number (the thesis),
+ME-TRPO's check of the policy's return under every member, or a check on the epoch's real batch
+that keeps only the updates the robot's own data say helped (:class:`RealCheck`).
 
 :class:`Imagination` owns all of that (the imagined env, the start states, the horizon, the
 rule); the training loop asks it for one epoch's batches, ``imagination.epoch(...)``, and
@@ -19,7 +20,7 @@ iterates.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -44,7 +45,7 @@ from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_mod
 from unipolicy_rl.world_models.trainer import EPISODE_START
 
 ROLLOUTS = ("branch", "episode")
-STOPPING_RULES = ("fixed", "metrpo")
+STOPPING_RULES = ("fixed", "metrpo", "real")
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,11 @@ class StoppingRule:
     ``fixed``: always ``max_updates`` (the thesis). ``metrpo`` (ME-TRPO): every
     ``check_every`` updates, the policy's imagined return is measured under every voting member
     from the same start states; the epoch's updates stop when fewer than
-    ``min_improving_fraction`` of them still see it improve, or at ``max_updates``.
+    ``min_improving_fraction`` of them still see it improve, or at ``max_updates``. ``real``:
+    every ``check_every`` updates (and after the last), TRPO's surrogate on the epoch's real
+    batch; the updates stop at the first check where it did not rise, and the policy goes back to
+    the last check where it did (:class:`RealCheck`; needs the real batch's TRPO update,
+    ``train_on_real``).
 
     Who votes is the model's ``voting_members``: every member of an ensemble, elites or not, as
     ME-TRPO checks every model it trained. Elites are ranked on one-step validation error, a
@@ -174,6 +179,9 @@ class ImaginationSettings:
             check_threshold(self.disagreement_cut)
         if not isinstance(self.background_fit, bool):
             raise ValueError(f"background_fit must be true or false, got {self.background_fit!r}")
+        if self.stopping.kind == "real" and not self.train_on_real:
+            raise ValueError("stopping.kind=real checks the imagined updates against the epoch's real batch, with the "
+                             "advantages of the TRPO update on it: set train_on_real=true")
 
     def fits_after(self, epoch: int) -> bool:
         """Whether the world model is fitted after real epoch ``epoch`` (counted from 1): the first
@@ -229,9 +237,17 @@ class Imagination:
     def horizon(self, epoch: int) -> int:
         return self.episode_length if self.settings.rollout == "episode" else self.settings.horizon(epoch)
 
-    def epoch(self, epoch: int, transitions: TensorDictBase, policy: TensorDictModuleBase) -> ImaginedEpoch:
+    def epoch(self, epoch: int, transitions: TensorDictBase, policy: TensorDictModuleBase,
+              real_surrogate: Callable[[], float] | None = None) -> ImaginedEpoch:
         """The imagined batches of ``epoch`` (iterate them; each is one policy update's data),
-        branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``."""
+        branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``.
+
+        ``real_surrogate`` (``stopping.kind=real`` only, and needed there): the current policy's
+        TRPO surrogate on the epoch's real batch, e.g. ``partial(learner.real_surrogate, batch)``.
+        """
+        if self.stopping.kind == "real" and real_surrogate is None:
+            raise ValueError("stopping.kind=real needs real_surrogate: the policy's TRPO surrogate on the "
+                             "epoch's real batch (TRPOLearner.real_surrogate)")
         torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION))
         horizon = self.horizon(epoch)
         starts = self._start_sampler(transitions, epoch)
@@ -244,7 +260,8 @@ class Imagination:
                              self.settings.deterministic, cut),
             self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
         )
-        return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts))
+        real_check = None if self.stopping.kind != "real" else RealCheck(policy, real_surrogate)
+        return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts), real_check)
 
     def _start_sampler(self, data: TensorDictBase, epoch: int):
         pool = data if self.settings.rollout == "branch" else data[data.get(EPISODE_START)]
@@ -265,15 +282,66 @@ class Imagination:
             return member_returns(world_model, self.reference_env, policy, starts, self.stopping.check_horizon)
 
 
+class RealCheck:
+    """The ``real`` stopping rule: imagined updates kept only while the robot's own data agree.
+
+    The model's members cannot tell where they share a bias (the PCE's bootstrap members do:
+    docs/results.md, "Polynomial chaos"), so ME-TRPO's vote lets the policy climb the model's
+    optimum rather than the robot's. The epoch's real batch can: TRPO's surrogate on it,
+    ``mean(pi(a|s) / pi_k(a|s) * A_k)`` with the collecting policy ``pi_k``'s actions and
+    advantages, estimates the real return's change to first order. The imagined updates never
+    saw that batch, so a rise of the surrogate between two checks is an unbiased sign that those
+    updates helped on the robot (the real update's own fit to the batch's noise does not enter
+    the difference). At the first check where it did not rise, the policy's weights go back to
+    the last check where it did, and the epoch's updates stop.
+
+    Args:
+        policy: the collecting policy the updates change (its weights are what is restored).
+        surrogate: the current policy's surrogate on the epoch's real batch.
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, surrogate: Callable[[], float]) -> None:
+        self.policy, self.surrogate = policy, surrogate
+        self.start = self.best = surrogate()
+        self.kept = self._weights()
+        self.checked_at = 0  # updates taken when last checked
+        self.kept_updates = 0  # updates in the policy the rule last kept
+
+    def improved(self, updates: int) -> bool:
+        """After ``updates`` updates: whether the surrogate rose since the last check; if not, the
+        policy is restored to the last check where it did."""
+        self.checked_at = updates
+        current = self.surrogate()
+        if current > self.best:
+            self.best, self.kept, self.kept_updates = current, self._weights(), updates
+            return True
+        self.policy.load_state_dict(self.kept)
+        return False
+
+    def finish(self, updates: int) -> None:
+        """The last updates, if no check has seen them yet (the rule ran to ``max_updates``)."""
+        if updates > self.checked_at:
+            self.improved(updates)
+
+    def metrics(self, prefix: str) -> dict[str, float]:
+        return {f"{prefix}kept_updates": float(self.kept_updates),
+                f"{prefix}real_surrogate_gain": self.best - self.start}
+
+    def _weights(self) -> dict[str, torch.Tensor]:
+        return {name: value.detach().clone() for name, value in self.policy.state_dict().items()}
+
+
 class ImaginedEpoch:
     """One epoch's imagined batches: iterating rolls the policy out once per batch (the loop
     updates the policy in between) until the stopping rule says stop; :meth:`metrics` then tells
-    how many updates ran and, under ME-TRPO's rule, the fraction of members still improving."""
+    how many updates ran and, under ME-TRPO's rule, the fraction of members still improving
+    (under the ``real`` rule: how many updates it kept, and their gain on the real batch)."""
 
     def __init__(self, imagination: Imagination, env: ImaginedWalkerEnv, policy: TensorDictModuleBase,
-                 horizon: int, check_starts: TensorDictBase) -> None:
+                 horizon: int, check_starts: TensorDictBase, real_check: RealCheck | None = None) -> None:
         self.imagination, self.env, self.policy, self.horizon = imagination, env, policy, horizon
         self.check_starts = check_starts
+        self.real_check = real_check
         self.updates = 0
         self.improving: float | None = None
         self.rollout_seconds = 0.0  # what the last batch took to imagine (its check included)
@@ -284,13 +352,15 @@ class ImaginedEpoch:
         while True:
             started = time.perf_counter()
             if not (self.updates < stopping.max_updates and next(checks)):
-                return
+                break
             with torch.no_grad():
                 rollout = self.env.rollout(self.horizon, self.policy, break_when_any_done=False)
             truncate_last_step(rollout)
             self.rollout_seconds = time.perf_counter() - started
             self.updates += 1
             yield label(rollout, IMAGINED)
+        if self.real_check is not None:
+            self.real_check.finish(self.updates)
 
     def _checks(self) -> Iterator[bool]:
         """Before every update, whether updates may go on (the stopping rule)."""
@@ -298,6 +368,12 @@ class ImaginedEpoch:
         if stopping.kind == "fixed":
             while True:
                 yield True
+        if stopping.kind == "real":
+            while True:
+                yield True
+                if self.updates % stopping.check_every == 0 and not self.real_check.improved(self.updates):
+                    yield False
+                    return
         baseline = self.imagination.member_returns(self.policy, self.check_starts)
         while True:
             yield True
@@ -313,6 +389,8 @@ class ImaginedEpoch:
         out = {f"{prefix}policy_updates": float(self.updates)}
         if self.improving is not None:
             out[f"{prefix}improving_members"] = self.improving
+        if self.real_check is not None:
+            out.update(self.real_check.metrics(prefix))
         return out
 
 
@@ -346,6 +424,7 @@ __all__ = [
     "Imagination",
     "ImaginationSettings",
     "ImaginedEpoch",
+    "RealCheck",
     "StoppingRule",
     "imagined_metrics",
 ]

@@ -77,6 +77,28 @@ class TRPOLearner:
                                   f"({'; '.join(self.updater.skip_reasons)})")
         return metrics
 
+    def real_surrogate(self, batch: TensorDictBase) -> float:
+        """TRPO's surrogate of the current policy on ``batch``, a batch this learner has updated on:
+        ``mean(pi(a|s) / pi_k(a|s) * A)`` with the collecting policy's log-probabilities and the
+        (standardised) advantages of that update. What ``imagination.stopping.kind=real`` checks
+        imagined updates against (:class:`~unipolicy_rl.collectors.RealCheck`).
+
+        The observations are normalised afresh: the batch holds them as the collecting policy's
+        normaliser saw them, before the epoch's refresh.
+
+        Raises:
+            KeyError: ``batch`` has no advantages (no update was taken on it), naming the key.
+        """
+        keys = self.loss.tensor_keys
+        if keys.advantage not in batch.keys():
+            raise KeyError(f"real_surrogate needs the batch's {keys.advantage!r} from a TRPO update on it: "
+                           "call update(batch) first (imagination.train_on_real=true)")
+        flat = batch.reshape(-1)
+        probe = flat.select(*self.observation_keys, keys.action, keys.sample_log_prob).clone()
+        with torch.no_grad():
+            distribution = self.loss.policy_distribution(self.normalizer(probe))
+            return self.loss.surrogate_advantage(distribution, probe, self.loss.advantage(flat)).item()
+
     def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
         """The trust region does not bound what a refresh does to the policy: its KL (on the
         batch's observations, with their masks) is logged."""
