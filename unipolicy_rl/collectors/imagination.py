@@ -285,9 +285,9 @@ class Imagination:
 class RealCheck:
     """The ``real`` stopping rule: imagined updates kept only while the robot's own data agree.
 
-    The model's members cannot tell where they share a bias (the PCE's bootstrap members do:
-    docs/results.md, "Polynomial chaos"), so ME-TRPO's vote lets the policy climb the model's
-    optimum rather than the robot's. The epoch's real batch can: TRPO's surrogate on it,
+    A model's members cannot show a bias they share (the PCE's bootstrap members share its own:
+    docs/results.md, "Polynomial chaos"), and then ME-TRPO's vote lets the policy climb the
+    model's optimum rather than the robot's. The epoch's real batch can: TRPO's surrogate on it,
     ``mean(pi(a|s) / pi_k(a|s) * A_k)`` with the collecting policy ``pi_k``'s actions and
     advantages, estimates the real return's change to first order. The imagined updates never
     saw that batch, so a rise of the surrogate between two checks is an unbiased sign that those
