@@ -122,7 +122,6 @@ DEFAULT_LEARNER_FINGERPRINT = [1128.554569445152, 506.720950693019, 1134.4549242
 def test_the_default_learner_s_numbers_have_not_moved():
     """The flat path (robot=vertebrate policy=mlp, the default) computes what it did."""
     from hydra import compose, initialize_config_dir
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from unipolicy_rl.factories import make_learner
 
@@ -135,14 +134,7 @@ def test_the_default_learner_s_numbers_have_not_moved():
         learner = make_learner(cfg, 18, 4)
         generator = torch.Generator().manual_seed(1)
         for _ in range(2):
-            batch = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1}, [2, 64])
-            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-                batch = learner.policy(batch)
-            done = torch.zeros(2, 64, 1, dtype=torch.bool)
-            done[:, 31::32] = True
-            batch["next"] = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1,
-                                        "reward": torch.randn(2, 64, 1, generator=generator), "done": done,
-                                        "terminated": torch.zeros_like(done)}, [2, 64])
+            batch = _collected_batch(learner, generator)
             metrics = learner.update(batch)
             learner.refresh_observation_normalizer(batch)
     finally:
@@ -156,11 +148,11 @@ def test_the_default_learner_s_numbers_have_not_moved():
     assert numbers == pytest.approx(DEFAULT_LEARNER_FINGERPRINT, rel=RELATIVE_TOLERANCE)
 
 
-def _collected_batch(learner, seed: int = 1) -> TensorDict:
-    """A batch as a real epoch gives it: two 64-step rows the learner's own policy acted in."""
+def _collected_batch(learner, generator: torch.Generator) -> TensorDict:
+    """A batch as a real epoch gives it: two 64-step rows the learner's own policy acted in
+    (observations and rewards drawn from ``generator``)."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    generator = torch.Generator().manual_seed(seed)
     batch = TensorDict({"observation": torch.randn(2, 64, 18, generator=generator) * 3 + 1}, [2, 64])
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         batch = learner.policy(batch)
@@ -177,7 +169,7 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
     after the update, unchanged by a preserving refresh of the normaliser (it re-normalises the raw
     observations), and refused on a batch no update has given advantages."""
     learner = _trpo_learner()
-    batch = _collected_batch(learner)
+    batch = _collected_batch(learner, torch.Generator().manual_seed(1))
     with pytest.raises(KeyError, match="'advantage' from a TRPO update"):
         learner.real_surrogate(batch)
     learner.normalizer(batch["next"])
@@ -188,5 +180,5 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
     after_step = learner.real_surrogate(batch)
     assert after_step == pytest.approx(metrics["train/surrogate_improvement"], rel=1e-4)
     assert after_step > 0
-    learner.refresh_observation_normalizer(_collected_batch(learner, seed=2))  # preserve: the default
+    learner.refresh_observation_normalizer(_collected_batch(learner, torch.Generator().manual_seed(2)))  # preserve: the default
     assert learner.real_surrogate(batch) == pytest.approx(after_step, rel=1e-4)
