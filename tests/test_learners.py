@@ -180,5 +180,6 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
     after_step = learner.real_surrogate(batch)
     assert after_step == pytest.approx(metrics["train/surrogate_improvement"], rel=1e-4)
     assert after_step > 0
-    learner.refresh_observation_normalizer(_collected_batch(learner, torch.Generator().manual_seed(2)))  # preserve: the default
+    # preserve: the default refresh
+    learner.refresh_observation_normalizer(_collected_batch(learner, torch.Generator().manual_seed(2)))
     assert learner.real_surrogate(batch) == pytest.approx(after_step, rel=1e-4)
