@@ -18,7 +18,8 @@ thread.
 
 ``--critics`` compares the critics a token transformer policy can train with (``policy.critic``,
 :data:`CRITIC_VARIANTS`) instead, on real data: ``robot=grammar``'s env (the 32 training
-morphologies, padded to its 29 token slots) collects ``--batches`` + 1 batches of ``--samples``
+morphologies, padded to its 29 token slots; ``--overrides`` changes the config, e.g.
+``robot.training_morphologies=8``) collects ``--batches`` + 1 batches of ``--samples``
 steps (one 100-step episode per robot) with the untrained token transformer policy, its
 normaliser refreshed after every batch as in training. Each critic, built by the run's own
 factory (``make_learner``, the same seed, so each beside the same actor), is fitted once per
@@ -142,10 +143,11 @@ def timed_update(updater: TRPOUpdater, batch: TensorDict) -> tuple[float, float,
     return step_seconds, time.perf_counter() - start, result
 
 
-def critic_config(name: str, fisher_fraction: float):
+def critic_config(name: str, fisher_fraction: float, overrides: list[str]):
     with initialize_config_dir(str(CONF), version_base=None):
         return compose("config", overrides=["robot=grammar", "policy=token_transformer",
-                                             f"algo.fisher_fraction={fisher_fraction}", *CRITIC_VARIANTS[name]])
+                                             f"algo.fisher_fraction={fisher_fraction}", *CRITIC_VARIANTS[name],
+                                             *overrides])
 
 
 def reward_to_go(batch: TensorDictBase, gamma: float) -> torch.Tensor:
@@ -179,7 +181,7 @@ def compare_critics(args) -> None:
     unknown = sorted(set(args.critics) - set(CRITIC_VARIANTS))
     if unknown:
         raise SystemExit(f"unknown critics {unknown}; --critics takes {list(CRITIC_VARIANTS)}")
-    configs = {name: critic_config(name, args.fractions[0]) for name in args.critics}
+    configs = {name: critic_config(name, args.fractions[0], args.overrides) for name in args.critics}
     cfg = next(iter(configs.values()))
     algo, episode_length = cfg.algo, cfg.robot.episode_length
     env = make_morphology_env(cfg, args.samples // episode_length)
@@ -270,6 +272,8 @@ def main() -> None:
     parser.add_argument("--held-out-share", type=float, default=0.2,
                         help="--critics: the share of each batch's samples held out of its fit")
     parser.add_argument("--seed", type=int, default=0, help="--critics: seeds the robots, the networks and the splits")
+    parser.add_argument("--overrides", nargs="*", default=[],
+                        help="--critics: more config overrides, e.g. robot.training_morphologies=8")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)

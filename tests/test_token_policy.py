@@ -29,12 +29,15 @@ from unipolicy_rl.policy import (
     make_token_norm,
 )
 from unipolicy_rl.token_networks import (
+    TokenEncoder,
     TokenTransformerSettings,
+    attention_blocked,
     make_padded_mlp_actor,
     make_padded_mlp_critic,
     make_pooled_token_critic,
     make_token_transformer_actor,
     make_token_transformer_critic,
+    used_slots,
 )
 from unipolicy_rl.token_statistics import TokenObservationStatistics
 
@@ -123,6 +126,24 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
         torch.testing.assert_close(big_dist.entropy(), small_dist.entropy())
         torch.testing.assert_close(critic(bigger.clone())["state_value"], critic(data.clone())["state_value"],
                                    atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("graph_attention", [False, True])
+def test_the_encoder_cuts_trailing_padding_and_its_real_outputs_stay_exact(graph_attention):
+    settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, graph_attention=graph_attention)
+    encoder = TokenEncoder(F, settings)
+    data = padded(robots([SNAKE, QUADRUPED], length=7, batch=6), 12)
+    tokens, mask, parent = data[TOKENS], data[TOKEN_MASK], data[TOKEN_PARENT]
+    assert used_slots(mask) == 7 and used_slots(mask[:1]) == 5 and used_slots(torch.zeros(3, 4, dtype=torch.bool)) == 1
+
+    with torch.no_grad():
+        encoded = encoder(tokens, mask, parent)
+        # The same layers over all 12 slots, as the encoder ran before it cut the padding.
+        blocked = attention_blocked(mask, parent, graph_attention).repeat_interleave(settings.heads, dim=0)
+        uncut = encoder.encoder(encoder.embedding(tokens), mask=blocked)
+    assert encoded.shape == uncut.shape == (6, 12, 16)
+    torch.testing.assert_close(encoded[mask], uncut[mask], atol=1e-6, rtol=1e-6)
+    assert torch.equal(encoded[:, 7:], torch.zeros(6, 5, 16))  # slots no robot uses were never computed
 
 
 def test_padding_leaves_the_pooled_critic_value_unchanged():

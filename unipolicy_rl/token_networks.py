@@ -60,6 +60,7 @@ __all__ = [
     "make_pooled_token_critic",
     "make_token_transformer_actor",
     "make_token_transformer_critic",
+    "used_slots",
 ]
 
 TRANSFORMER_ACTIVATIONS = ("relu", "gelu")
@@ -117,6 +118,12 @@ def attention_blocked(token_mask: torch.Tensor, token_parent: torch.Tensor, grap
     return ~(allowed | torch.eye(length, dtype=torch.bool, device=token_mask.device))
 
 
+def used_slots(token_mask: torch.Tensor) -> int:
+    """One past the last slot that any robot of ``token_mask`` ``[B, L]`` uses (at least 1)."""
+    used = token_mask.any(0).nonzero()
+    return int(used[-1]) + 1 if len(used) else 1
+
+
 class TokenEncoder(nn.Module):
     """``(tokens [*, L, F], mask, parent) -> [*, L, d_model]``: embedding, then self-attention layers."""
 
@@ -133,15 +140,26 @@ class TokenEncoder(nn.Module):
                                              enable_nested_tensor=False)
 
     def forward(self, tokens: torch.Tensor, token_mask: torch.Tensor, token_parent: torch.Tensor) -> torch.Tensor:
+        """The encoded tokens; slots past the last one any robot of the batch uses come out as zeros.
+
+        Those trailing slots are padding for every robot, and no real token attends to padding,
+        so they are cut before the layers: a batch of 20-link robots padded to 29 slots costs
+        what 20 slots cost (attention is quadratic in the slots), with the real tokens' outputs
+        unchanged. A padding slot's output is never read (the actions' mask, the critics' pooling).
+        """
         batch_shape, (length, features) = tokens.shape[:-2], tokens.shape[-2:]
         flat_mask = token_mask.reshape(-1, length)
-        blocked = attention_blocked(flat_mask, token_parent.reshape(-1, length), self.settings.graph_attention)
+        used = used_slots(flat_mask)
+        flat_mask, flat_parent = flat_mask[:, :used], token_parent.reshape(-1, length)[:, :used]
+        blocked = attention_blocked(flat_mask, flat_parent, self.settings.graph_attention)
         blocked = blocked.repeat_interleave(self.settings.heads, dim=0)  # [B * heads, L, L], as the encoder wants
-        embedded = self.embedding(tokens.reshape(-1, length, features))
+        embedded = self.embedding(tokens.reshape(-1, length, features)[:, :used])
         # The math kernel: TRPO's Fisher-vector product differentiates the network's backward
         # pass, and the fused CPU attention kernel has no double backward.
         with sdpa_kernel(SDPBackend.MATH):
             encoded = self.encoder(embedded, mask=blocked)
+        if used < length:
+            encoded = nn.functional.pad(encoded, (0, 0, 0, length - used))
         return encoded.reshape(*batch_shape, length, -1)
 
     def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
