@@ -37,7 +37,7 @@ from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
 from unipolicy_rl.seeding import MODEL_FIT, reseed
-from unipolicy_rl.training import RunLock, StopAtEpochEnd
+from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
 from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training.progress import (
     PeriodicEvaluation,
@@ -82,7 +82,7 @@ def main(cfg: DictConfig) -> dict:
                                      elapsed_before=state.get("elapsed", 0.0) if state else 0.0)
         evaluation = PeriodicEvaluation(cfg, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
         log = RunLog(instantiate(cfg.logger), run_dir, cfg.epochs, real.epoch, cfg.run_name, cfg.progress_bar)
-        tick = time.perf_counter()
+        tick, tick_cpu = time.perf_counter(), process_tree_cpu_seconds()
         for batch in real:
             epoch = real.epoch
             # ---- Real data (and a policy update on it, unless the world model's data alone train it)
@@ -122,6 +122,7 @@ def main(cfg: DictConfig) -> dict:
             real.update_policy_weights_()
             metrics[columns.COLLECT_TIME] = collected - tick
             metrics[columns.UPDATE_TIME] = time.perf_counter() - collected
+            metrics[columns.CPU_TIME] = process_tree_cpu_seconds() - tick_cpu
             # ---- Evaluation (deterministic policy, real env, design grid) and checkpoint
             metrics.update(evaluation(epoch, real.real_env_steps, learner.policy))
             if evaluation.improved:
@@ -134,7 +135,7 @@ def main(cfg: DictConfig) -> dict:
                 log.close()
                 print(f"stopped: saved epoch {epoch} to {checkpoints.path}; continue with resume={checkpoints.path}")
                 return {"epoch": epoch, "checkpoint": str(checkpoints.path)}
-            tick = time.perf_counter()
+            tick, tick_cpu = time.perf_counter(), process_tree_cpu_seconds()
         log.close()
         path = checkpoints.save(evaluation.best)
 

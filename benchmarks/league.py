@@ -10,7 +10,7 @@ up to ``evaluation.dense_until``, 100,000, then every ``evaluation.then_every_st
 design. An entry is a run name (``se-trpo``, ``se-moe-trpo``), its runs the seeds. Per entry it
 prints the seeds and, per level (:mod:`unipolicy_rl.report.league`: (a) first walks the grid,
 (b) walks and stays walking, (c) SE-TRPO's final level), how many runs reached it, the median
-real env steps with a bootstrap 95% interval, the median wall time, and how many times fewer
+real env steps with a bootstrap 95% interval, the median wall and CPU time, and how many times fewer
 real env steps than SE-TRPO and than the best model-free entry; a run that never reached a
 level counts as longer than any that did. Then (d): the grid mean and worst design at 50,000,
 100,000 and 300,000 real env steps. Writes ``league.png`` (grid mean and worst design against
@@ -21,7 +21,10 @@ Wall times are the seconds a run spent training (each real epoch's ``time/collec
 ``time/update``: collecting, fitting, updating), its periodic evaluations and checkpoints left
 out: an entry that learns slowly evaluates more often on its way to a level (the schedule is in
 real env steps) and is not charged for it. Compare them only between runs that shared the
-machine alike.
+machine alike. CPU times are the CPU seconds of the same spans (``time/cpu``: every core, the
+collector's worker processes counted; a process waiting for a core spends none, so other load on
+the machine barely moves them); runs
+from before the column existed have none ("-").
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ import dataclasses
 import importlib.util
 import itertools
 import math
+import re
 import subprocess
 import sys
 import time
@@ -121,13 +122,17 @@ EVALUATED_COLUMNS = ["epoch", "imagined", columns.REAL_STEPS, columns.ELAPSED, c
 
 
 def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple[int, float, float]],
-              last: int, epoch_times: tuple[float, float] | None = None) -> Path:
+              last: int, epoch_times: tuple[float, float] | None = None, cpu: float | None = None,
+              cpu_from: int = 1) -> Path:
     """A run folder as train.py leaves it: its config, Hydra's choices and a metrics.csv of
     1,000-step epochs up to ``last`` real steps (one second each), evaluated at 2,000-step
     points up to 100,000 and 10,000-step ones after; ``segments`` are ``(from step, grid mean,
     worst design)``, each holding until the next. With ``epoch_times`` (collect, update), each
     real epoch logs them (``time/collect``, ``time/update``), the rest of its second being its
-    evaluation; a model-based run's imagined rows then log 0.1 s of each, parts of the update."""
+    evaluation; a model-based run's imagined rows then log 0.1 s of each, parts of the update.
+    With ``cpu``, real epochs from ``cpu_from`` on log that many CPU seconds (``time/cpu``; earlier
+    ones, as a run resumed from before the column, leave it blank); imagined rows log 1,000 s,
+    which must never count."""
     path = root / f"{entry}_seed{seed}"
     (path / ".hydra").mkdir(parents=True)
     config = {"run_name": entry, "seed": seed, "source": {"name": entry.split("-")[1] if kind == "model" else "se",
@@ -138,7 +143,8 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
     choices = {"hydra": {"runtime": {"choices": {"design": "se"}}}}
     OmegaConf.save(OmegaConf.create(choices), path / ".hydra" / "hydra.yaml")
     with (path / "metrics.csv").open("w", newline="") as file:
-        fields = EVALUATED_COLUMNS + (list(columns.EPOCH_TIMES) if epoch_times is not None else [])
+        fields = (EVALUATED_COLUMNS + (list(columns.EPOCH_TIMES) if epoch_times is not None else [])
+                  + ([columns.CPU_TIME] if cpu is not None else []))
         writer = csv.DictWriter(file, fieldnames=fields)
         writer.writeheader()
         for epoch in range(1, last // 1000 + 1):
@@ -148,10 +154,14 @@ def write_run(root: Path, entry: str, kind: str, seed: int, segments: list[tuple
                             columns.ELAPSED: epoch - 0.5}
                 if epoch_times is not None:
                     imagined.update({columns.COLLECT_TIME: 0.1, columns.UPDATE_TIME: 0.1})
+                if cpu is not None:
+                    imagined[columns.CPU_TIME] = 1000.0
                 writer.writerow(imagined)
             row = {"epoch": epoch, "imagined": 0.0, columns.REAL_STEPS: steps, columns.ELAPSED: float(epoch)}
             if epoch_times is not None:
                 row.update({columns.COLLECT_TIME: epoch_times[0], columns.UPDATE_TIME: epoch_times[1]})
+            if cpu is not None and epoch >= cpu_from:
+                row[columns.CPU_TIME] = cpu
             if evaluation_points(steps, 2000, 100_000, 10_000) > evaluation_points(steps - 1000, 2000, 100_000, 10_000):
                 mean, worst = next((m, w) for start, m, w in reversed(segments) if start <= steps)
                 row.update({columns.GRID_MEAN: mean, columns.GRID_MIN: worst})
@@ -218,6 +228,31 @@ def test_wall_times_are_the_seconds_spent_training_without_the_evaluations(tmp_p
     # parts of their epoch's update, not added again), not the 4 s since the start
     assert timed.levels["first_walk"].seconds == 3.0
     assert timed.levels["se_trpo_final"].seconds == 30 * 0.75
+
+
+@pytest.mark.parametrize("kind", ["real", "model"])
+def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tmp_path, kind):
+    segments, last = RUNS["se-trpo", "real", 0]
+    path = write_run(tmp_path, f"se-{kind}", kind, 0, segments, last, epoch_times=(0.5, 0.25), cpu=1.5)
+    timed = league.run_result(load_run(path, path.name))
+    assert timed.levels["first_walk"].cpu_seconds == 4 * 1.5  # the imagined rows' 1,000 s are not added
+    assert timed.levels["se_trpo_final"].cpu_seconds == 30 * 1.5
+    row = next(line for line in league.format_runs([timed]).splitlines() if line.startswith("se-"))
+    assert "4,000 (3 s, 6 CPU s)" in row
+
+    # Resumed from a commit before the column: no sum with its first part missing.
+    partial = write_run(tmp_path / "partial", f"se-{kind}", kind, 1, segments, last, epoch_times=(0.5, 0.25),
+                        cpu=1.5, cpu_from=3)
+    resumed = league.run_result(load_run(partial, partial.name))
+    assert math.isnan(resumed.levels["first_walk"].cpu_seconds)
+    both = league.make_entries([timed, resumed], resamples=200)[0].levels["first_walk"]
+    alone = league.make_entries([timed], resamples=200)[0].levels["first_walk"]
+    assert math.isnan(both.cpu_seconds) and alone.cpu_seconds == 6.0
+    table = league.format_league(league.make_entries([timed], resamples=200))
+    walk = table.splitlines()[table.splitlines().index(next(line for line in table.splitlines()
+                                                             if line.startswith("(a)"))) + 2]
+    assert re.search(r"\]\s+(\S+)\s+(\S+)", walk).groups() == ("3", "6")  # after the interval: wall s, CPU s
+    assert "median CPU s" in table
 
 
 def test_three_walking_evaluations_in_a_row_stay_walking_from_the_first_of_them(runs):

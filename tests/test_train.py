@@ -362,6 +362,10 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     # The model's error on each epoch's new states is measured before it fits them: from the second epoch on.
     assert not real[0]["model/fresh_error"] and all(float(row["model/fresh_error"]) > 0 for row in real[1:])
     assert all(row["eval/grid_min_displacement"] for row in real)  # evaluation.every_steps=1
+    # Each real epoch logs the CPU seconds of its collection and updates (at most a few busy processes' worth).
+    for row in real:
+        assert 0 < float(row["time/cpu"]) < 4 * (float(row["time/collect"]) + float(row["time/update"])) + 0.5
+    assert not any(row["time/cpu"] for row in imagined)
     # The run is named for what ran: the design, the world model and the algorithm.
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 

@@ -19,7 +19,7 @@ design. From those evaluations, per run:
 
 An entry is a run name (``Run.source``: ``se-trpo``, ``se-moe-trpo``), its runs the seeds;
 model-free entries are those whose config says ``source.kind: real``. Per entry and level: how
-many runs reached it, the median real env steps (and wall seconds) with a run that never
+many runs reached it, the median real env steps (and wall and CPU seconds) with a run that never
 reached it counting as longer than any that did (``inf``), a percentile-bootstrap 95% interval
 of that median (runs resampled with replacement, seeded; a bound may be ``inf``: "not
 reached"), and how many times fewer real env steps it took than SE-TRPO and than the best
@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from unipolicy_rl.evaluation import GRID_WALKING_MEAN, WALKING_DISPLACEMENT, walks_the_grid
-from unipolicy_rl.report.metrics import column, real_env_steps, training_seconds
+from unipolicy_rl.report.metrics import column, real_env_steps, training_cpu_seconds, training_seconds
 from unipolicy_rl.report.runs import Run
 from unipolicy_rl.training.metrics_file import GRID_MEAN, GRID_MIN
 
@@ -64,6 +64,9 @@ class Evaluation:
     seconds: float  # wall seconds spent training up to it (evaluations and checkpoints left out)
     grid_mean: float  # m
     grid_min: float  # m, the worst design
+    # CPU seconds over the same spans, every core and the worker processes counted: a cost other
+    # load on the machine does not inflate (NaN for a run from before the run logged it)
+    cpu_seconds: float = math.nan
 
 
 def reaches_se_trpo_final(grid_mean: float, grid_min: float) -> bool:
@@ -122,8 +125,8 @@ def evaluations(run: Run) -> list[Evaluation]:
     if not run.rows:
         return []
     means, mins = column(run, GRID_MEAN), column(run, GRID_MIN)
-    steps, seconds = real_env_steps(run), training_seconds(run)
-    return [Evaluation(float(steps[i]), float(seconds[i]), float(means[i]), float(mins[i]))
+    steps, seconds, cpu = real_env_steps(run), training_seconds(run), training_cpu_seconds(run)
+    return [Evaluation(float(steps[i]), float(seconds[i]), float(means[i]), float(mins[i]), float(cpu[i]))
             for i in range(len(run.rows)) if math.isfinite(means[i]) and math.isfinite(mins[i])]
 
 
@@ -210,6 +213,7 @@ class LevelStats:
     seconds: float  # median wall seconds
     seconds_interval: tuple[float, float]
     unfinished: int = 0  # runs that have not reached the level but have not trained to their budget either
+    cpu_seconds: float = math.nan  # median CPU seconds; NaN when a run that reached the level did not log them
 
 
 @dataclass
@@ -233,10 +237,12 @@ def level_stats(runs: Sequence[RunResult], key: str, resamples: int = RESAMPLES,
     found = [run.levels[key] for run in runs]
     steps = [e.steps if e is not None else math.inf for e in found]
     seconds = [e.seconds if e is not None else math.inf for e in found]
+    cpu = [e.cpu_seconds if e is not None else math.inf for e in found]
     return LevelStats(reached=sum(e is not None for e in found), runs=len(found),
                       steps=median(steps), steps_interval=bootstrap_interval(steps, resamples, seed),
                       seconds=median(seconds), seconds_interval=bootstrap_interval(seconds, resamples, seed),
-                      unfinished=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)))
+                      unfinished=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)),
+                      cpu_seconds=math.nan if any(math.isnan(value) for value in cpu) else median(cpu))
 
 
 def make_entries(results: Sequence[RunResult], resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> list[Entry]:
@@ -270,6 +276,8 @@ def baseline_entry(entries: Sequence[Entry], name: str = BASELINE) -> Entry | No
 
 # -- the table -------------------------------------------------------------------------
 def format_count(value: float, unit: str = "") -> str:
+    if math.isnan(value):
+        return "-"
     return "not reached" if math.isinf(value) else f"{value:,.0f}{unit}"
 
 
@@ -313,7 +321,8 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
     for level in LEVELS:
         best = best_model_free(entries, level.key)
         lines += ["", f"{level.label} {level.key}: {level.description}",
-                  f"{'entry':<{width}}  {'reached':>18}  {'median real steps [95% CI]':<44} {'median wall s':>13}  "
+                  f"{'entry':<{width}}  {'reached':>18}  {'median real steps [95% CI]':<44} {'median wall s':>13} "
+                  f"{'median CPU s':>12}  "
                   f"{'vs ' + baseline:<17} vs best model-free ({best.name if best else 'none reached'})"]
         ratios = ratio_lines(entries, level.key, baseline)
         for entry in entries:
@@ -322,7 +331,8 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
             unfinished = f" ({stats.unfinished} unfinished)" if stats.unfinished else ""
             reached = f"{stats.reached}/{stats.runs}{unfinished}"
             lines.append(f"{entry.name:<{width}}  {reached:>18}  {steps:<44} "
-                         f"{format_count(stats.seconds):>13}  {ratios[entry.name][0]:<17} {ratios[entry.name][1]}")
+                         f"{format_count(stats.seconds):>13} {format_count(stats.cpu_seconds):>12}  "
+                         f"{ratios[entry.name][0]:<17} {ratios[entry.name][1]}")
     lines += ["", "(d) the grid at the first evaluation at or after each milestone: median grid mean / median worst "
               "design (m), over the runs that got there"]
     lines.append((f"{'entry':<{width}}  " + "  ".join(f"{f'{steps:,} steps':<22}" for steps in MILESTONES)).rstrip())
@@ -336,8 +346,15 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
                 cells.append(f"- (0/{len(entry.runs)})")
         lines.append((f"{entry.name:<{width}}  " + "  ".join(f"{cell:<22}" for cell in cells)).rstrip())
     lines += ["", "median wall s: wall seconds spent training (collecting, fitting, updating), the periodic "
-              "evaluations and checkpoints left out"]
+              "evaluations and checkpoints left out; median CPU s: the CPU seconds of the same spans, every core "
+              "and the collector's worker processes counted (time/cpu; '-' where a run from before it did not "
+              "log them)"]
     return "\n".join(lines)
+
+
+def cpu_note(evaluation: Evaluation) -> str:
+    """``, N CPU s`` where the run logged its CPU seconds, else nothing."""
+    return "" if math.isnan(evaluation.cpu_seconds) else f", {evaluation.cpu_seconds:,.0f} CPU s"
 
 
 def format_runs(results: Sequence[RunResult]) -> str:
@@ -349,7 +366,7 @@ def format_runs(results: Sequence[RunResult]) -> str:
     lines = [f"{'run':<{width}}  {'entry':<16} " + " ".join(f"{level.label + ' ' + level.key:>22}" for level in LEVELS)
              + f" {'evaluations':>11} {'last at':>9}  status"]
     for result in results:
-        reached = " ".join(f"{f'{format_count(e.steps)} ({e.seconds:,.0f} s)' if e else '-':>22}"
+        reached = " ".join(f"{f'{format_count(e.steps)} ({e.seconds:,.0f} s{cpu_note(e)})' if e else '-':>22}"
                            for e in result.levels.values())
         last = f"{result.evaluations[-1].steps:,.0f}" if result.evaluations else "-"
         note = "" if result.step_schedule else "  (evaluated every evaluation.every epochs: an older run)"
@@ -365,7 +382,8 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
         writer.writerow(["entry", "model_free", "runs", "level", "reached", "unfinished", "median_steps", "steps_low",
-                         "steps_high", "median_seconds", "seconds_low", "seconds_high", f"fewer_than_{baseline}",
+                         "steps_high", "median_seconds", "seconds_low", "seconds_high", "median_cpu_seconds",
+                         f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
         for level in LEVELS:
@@ -374,7 +392,7 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
                 stats = entry.levels[level.key]
                 writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.unfinished,
                                  stats.steps,
-                                 *stats.steps_interval, stats.seconds, *stats.seconds_interval,
+                                 *stats.steps_interval, stats.seconds, *stats.seconds_interval, stats.cpu_seconds,
                                  fewer(reference.levels[level.key].steps, stats.steps) if reference else "",
                                  best.name if best else "", fewer(best.levels[level.key].steps, stats.steps)
                                  if best else ""])

@@ -17,6 +17,7 @@ import numpy as np
 from unipolicy_rl.evaluation import walks_the_grid
 from unipolicy_rl.report.runs import Run
 from unipolicy_rl.training.metrics_file import (
+    CPU_TIME,
     DISPLACEMENT,
     ELAPSED,
     EPOCH,
@@ -54,6 +55,7 @@ __all__ = [
     "series",
     "steps_are_derived",
     "surrogate_figures",
+    "training_cpu_seconds",
     "training_seconds",
 ]
 
@@ -103,6 +105,17 @@ def training_seconds(run: Run) -> np.ndarray:
     real = column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
     spent = np.sum([np.nan_to_num(column(run, name)) for name in EPOCH_TIMES], axis=0)
     return np.cumsum(np.where(real, spent, 0.0))
+
+
+def training_cpu_seconds(run: Run) -> np.ndarray:
+    """Per row: the CPU seconds (every core, the worker processes too) the run spent training up
+    to it, over the same spans as :func:`training_seconds` (each real epoch's ``time/cpu``); NaN
+    from the first real epoch that did not log it on (a run, or its first part before a resume,
+    from before the column existed), never a sum with a part missing."""
+    if CPU_TIME not in run.columns:
+        return np.full(len(run.rows), math.nan)
+    real = column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
+    return np.cumsum(np.where(real, column(run, CPU_TIME), 0.0))
 
 
 def steps_are_derived(run: Run) -> bool:

@@ -22,6 +22,9 @@ ELAPSED = "time/elapsed"  # wall seconds since the run started, over resumes
 COLLECT_TIME = "time/collect"  # seconds this batch took to collect
 UPDATE_TIME = "time/update"  # seconds this batch's policy update (and bookkeeping) took
 EPOCH_TIMES = (COLLECT_TIME, UPDATE_TIME)  # per-batch seconds; what older runs logged instead of ELAPSED
+# CPU seconds (every core, worker processes included; training/cpu_time.py) the real epoch's
+# collection and updates took, over the same span as its COLLECT_TIME + UPDATE_TIME; real rows only
+CPU_TIME = "time/cpu"
 
 # -- real episodes (blank on imagined rows) ------------------------------------------------
 REWARD = "train/episode_reward"  # real episodes' mean return
