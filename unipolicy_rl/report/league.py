@@ -64,8 +64,8 @@ class Evaluation:
     seconds: float  # wall seconds spent training up to it (evaluations and checkpoints left out)
     grid_mean: float  # m
     grid_min: float  # m, the worst design
-    # CPU seconds over the same spans, every core and the worker processes counted: a cost other
-    # load on the machine does not inflate (NaN for a run from before the run logged it)
+    # CPU seconds over the same spans, every core and the worker processes counted: a cost that
+    # other load on the machine barely inflates (NaN where the run did not log it)
     cpu_seconds: float = math.nan
 
 

@@ -1,14 +1,14 @@
-"""CPU seconds a run spends, its worker processes included: a cost that other load does not inflate.
+"""CPU seconds a run spends, its worker processes included: a cost that other load barely inflates.
 
 Wall seconds measure what a user waits for, but on a shared machine they grow with everything
-else that runs: two league runs on 2 cores each take about as long as one alone on one core.
-CPU seconds (user + system, summed over every core) count the work itself, so runs of
-different days and loads can be compared by them. The count covers this process (all its
-threads: a model fit on a second thread too) and every live descendant, such as the
-collector's worker processes, read from Linux's ``/proc``; processes that already ended count
-through their parent's ``cutime``/``cstime``. Ray actors are not descendants and are not
-counted. Elsewhere than Linux, only this process and the children it has already waited for
-are counted (:func:`os.times`).
+else that runs: a process that waits for a core adds wall seconds and no CPU seconds. CPU
+seconds (user + system, summed over every core) count the work itself, so runs of different
+days and loads can be compared by them (what sharing a core costs in caches is left in).
+The count covers this process (all its threads: a model fit on a second thread too) and every
+live descendant, such as the collector's worker processes, read from Linux's ``/proc``;
+processes that already ended count through their parent's ``cutime``/``cstime``. Ray actors
+are not descendants and are not counted. Elsewhere than Linux, only this process and the
+children it has already waited for are counted (:func:`os.times`).
 """
 
 from __future__ import annotations
