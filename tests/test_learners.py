@@ -174,12 +174,14 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
         learner.real_surrogate(batch)
     learner.normalizer(batch["next"])
     learner.loss.compute_advantage(batch)
-    assert abs(learner.real_surrogate(batch)) < 1e-6
+    terms = learner.real_surrogate(batch)
+    assert terms.shape == (batch.numel(),)  # one term per sample, for RealCheck to pair
+    assert abs(float(terms.mean())) < 1e-6
     metrics = learner.update(batch)
     assert metrics["train/step_accepted"] == 1.0
-    after_step = learner.real_surrogate(batch)
+    after_step = float(learner.real_surrogate(batch).mean())
     assert after_step == pytest.approx(metrics["train/surrogate_improvement"], rel=1e-4)
     assert after_step > 0
     # preserve: the default refresh
     learner.refresh_observation_normalizer(_collected_batch(learner, torch.Generator().manual_seed(2)))
-    assert learner.real_surrogate(batch) == pytest.approx(after_step, rel=1e-4)
+    assert float(learner.real_surrogate(batch).mean()) == pytest.approx(after_step, rel=1e-4)

@@ -474,6 +474,7 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
          "set world_model.trainer.num_threads=null (got 2)"),
         ("imagination.stopping.kind=real", "stopping.kind=real checks the imagined updates against the epoch's "
                                            "real batch"),
+        ("imagination.stopping.tolerance=1", "stopping.tolerance=1 applies to stopping.kind=real only"),
     ],
 )
 def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):

@@ -1,6 +1,7 @@
 """World models: the state layout, the ensembles' fit, the imagined env, the replay buffer and the imagination."""
 
 import copy
+import math
 
 import pytest
 import torch
@@ -475,14 +476,15 @@ def test_metrpo_rule_stops_an_epoch_when_members_stop_seeing_improvement():
     assert [sum(1 for _ in imagined) for _, imagined in epochs] == [2, 2]
 
 
-def _real_checked_epoch(surrogates, max_updates=10, check_every=2):
+def _real_checked_epoch(surrogates, max_updates=10, check_every=2, tolerance=0.0):
     """An epoch under the ``real`` rule whose successive surrogate readings are ``surrogates`` (the
-    first before any update); each imagined "update" adds 1 to every weight of the policy. Returns
-    the updates taken, the epoch's metrics and the policy's first weight after the epoch."""
-    readings = iter(surrogates)
+    first before any update; a number: one sample's term, or a tensor of the batch's terms); each
+    imagined "update" adds 1 to every weight of the policy. Returns the updates taken, the epoch's
+    metrics and the policy's first weight after the epoch."""
+    readings = iter(torch.as_tensor(reading, dtype=torch.float32).reshape(-1) for reading in surrogates)
     _, _, _, epochs, policy = _tiny_model_based(
-        StoppingRule(kind="real", max_updates=max_updates, check_every=check_every), epochs=1,
-        real_surrogate=lambda: next(readings))
+        StoppingRule(kind="real", max_updates=max_updates, check_every=check_every, tolerance=tolerance),
+        epochs=1, real_surrogate=lambda: next(readings))
     _, imagined = next(epochs)
     weight = next(policy.parameters())
     first = weight.detach().clone()
@@ -515,6 +517,39 @@ def test_the_real_rule_checks_the_updates_after_its_last_regular_check():
     # Rising to the end: all five kept.
     taken, metrics, moved = _real_checked_epoch([0.0, 0.1, 0.2, 0.3], max_updates=5)
     assert taken == 5 and moved == pytest.approx(5.0) and metrics["model/kept_updates"] == 5.0
+
+
+def test_a_tolerant_real_rule_keeps_a_fall_within_the_paired_noise_and_stops_at_one_beyond_it():
+    base = torch.linspace(-1.0, 1.0, 100)
+    noise = torch.randn(100, generator=torch.Generator().manual_seed(0))
+    noise = (noise - noise.mean()) / noise.std()  # its standard error: exactly 1 / sqrt(100) = 0.1
+    best = base + 0.3
+    # After 2 updates the mean rises by 0.3; after 4 it falls by 0.15 with a spread of the paired
+    # change whose standard error is 0.1: 1.5 standard errors.
+    fall = best - 0.15 + noise
+    readings = [base, best, fall]
+    taken, metrics, moved = _real_checked_epoch(readings, max_updates=4, tolerance=2.0)
+    assert taken == 4 and moved == pytest.approx(4.0) and metrics["model/kept_updates"] == 4.0
+    assert metrics["model/real_surrogate_gain"] == pytest.approx(0.15, abs=1e-5)  # the kept policy's, not the best's
+    # The same fall with a tolerance of 1 standard error: beyond the noise, the last two undone.
+    taken, metrics, moved = _real_checked_epoch(readings, max_updates=4, tolerance=1.0)
+    assert taken == 4 and moved == pytest.approx(2.0) and metrics["model/kept_updates"] == 2.0
+    # Kept falls are measured against the best check, not the last kept one: two falls of 1.5
+    # standard errors each are 3 below the best.
+    readings = [base, best, fall, fall - 0.15]
+    taken, metrics, moved = _real_checked_epoch(readings, max_updates=6, tolerance=2.0)
+    assert taken == 6 and moved == pytest.approx(4.0) and metrics["model/kept_updates"] == 4.0
+    # Without a tolerance, today's rule: any fall stops.
+    taken, metrics, moved = _real_checked_epoch([base, best, best - 0.001], max_updates=4)
+    assert moved == pytest.approx(2.0)
+
+
+def test_a_tolerance_is_refused_outside_the_real_rule_or_out_of_range():
+    with pytest.raises(ValueError, match="stopping.tolerance=1.0 applies to stopping.kind=real only"):
+        StoppingRule(kind="metrpo", tolerance=1.0)
+    for bad in (-0.5, math.inf, math.nan, "2"):
+        with pytest.raises(ValueError, match="stopping.tolerance must be a finite number >= 0"):
+            StoppingRule(kind="real", tolerance=bad)
 
 
 def test_the_real_rule_needs_the_real_batch_s_update_and_its_surrogate():

@@ -19,6 +19,7 @@ iterates.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -85,7 +86,8 @@ class StoppingRule:
     every ``check_every`` updates (and after the last), TRPO's surrogate on the epoch's real
     batch; the updates stop at the first check where it did not rise, and the policy goes back to
     the last check where it did (:class:`RealCheck`; needs the real batch's TRPO update,
-    ``train_on_real``).
+    ``train_on_real``). With ``tolerance`` > 0 a check also passes where the surrogate fell below
+    its best by at most that many standard errors of the fall (the batch's samples paired).
 
     Who votes is the model's ``voting_members``: every member of an ensemble, elites or not, as
     ME-TRPO checks every model it trained. Elites are ranked on one-step validation error, a
@@ -100,6 +102,7 @@ class StoppingRule:
     min_improving_fraction: float = 0.7
     check_starts: int = 50
     check_horizon: int = 20
+    tolerance: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in STOPPING_RULES:
@@ -111,6 +114,12 @@ class StoppingRule:
         if not 0 < self.min_improving_fraction <= 1:
             # 0 would never stop early: the fraction improving is never below 0.
             raise ValueError(f"stopping.min_improving_fraction must lie in (0, 1], got {self.min_improving_fraction!r}")
+        if not (isinstance(self.tolerance, (int, float)) and 0 <= self.tolerance < math.inf):
+            raise ValueError("stopping.tolerance must be a finite number >= 0 (standard errors), "
+                             f"got {self.tolerance!r}")
+        if self.tolerance and self.kind != "real":
+            raise ValueError(f"stopping.tolerance={self.tolerance!r} applies to stopping.kind=real only, "
+                             f"not {self.kind!r}")
 
     def keeps_going(self, baseline: torch.Tensor, current: torch.Tensor) -> tuple[bool, float]:
         """After a check: whether updates go on, and the fraction of voting members whose return
@@ -238,12 +247,13 @@ class Imagination:
         return self.episode_length if self.settings.rollout == "episode" else self.settings.horizon(epoch)
 
     def epoch(self, epoch: int, transitions: TensorDictBase, policy: TensorDictModuleBase,
-              real_surrogate: Callable[[], float] | None = None) -> ImaginedEpoch:
+              real_surrogate: Callable[[], torch.Tensor] | None = None) -> ImaginedEpoch:
         """The imagined batches of ``epoch`` (iterate them; each is one policy update's data),
         branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``.
 
         ``real_surrogate`` (``stopping.kind=real`` only, and needed there): the current policy's
-        TRPO surrogate on the epoch's real batch, e.g. ``partial(learner.real_surrogate, batch)``.
+        TRPO surrogate on the epoch's real batch, one term per sample (the surrogate is their
+        mean), e.g. ``partial(learner.real_surrogate, batch)``.
         """
         if self.stopping.kind == "real" and real_surrogate is None:
             raise ValueError("stopping.kind=real needs real_surrogate: the policy's TRPO surrogate on the "
@@ -260,7 +270,8 @@ class Imagination:
                              self.settings.deterministic, cut),
             self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
         )
-        real_check = None if self.stopping.kind != "real" else RealCheck(policy, real_surrogate)
+        real_check = (None if self.stopping.kind != "real" else
+                      RealCheck(policy, real_surrogate, self.stopping.tolerance))
         return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts), real_check)
 
     def _start_sampler(self, data: TensorDictBase, epoch: int):
@@ -293,30 +304,52 @@ class RealCheck:
     saw that batch, so a rise of the surrogate between two checks is an unbiased sign that those
     updates helped on the robot (the real update's own fit to the batch's noise does not enter
     the difference). At the first check where it did not rise, the policy's weights go back to
-    the last check where it did, and the epoch's updates stop.
+    the last check where it kept them, and the epoch's updates stop.
+
+    That sign is noisy: on 1,000 real samples the change a few updates make is often within the
+    estimate's noise, and a good model's updates are then refused as often as a biased one's
+    (docs/results.md, the MOE with this rule). ``tolerance`` > 0 also keeps the updates where the
+    surrogate fell below its best by at most ``tolerance`` standard errors of that fall, the
+    samples paired (the same batch under both policies): only a fall the batch can tell from
+    noise stops the epoch.
 
     Args:
         policy: the collecting policy the updates change (its weights are what is restored).
-        surrogate: the current policy's surrogate on the epoch's real batch.
+        surrogate: the current policy's surrogate on the epoch's real batch, one term per sample.
+        tolerance: standard errors of its fall below the best check the surrogate may lose and
+            the updates still be kept (0: it must rise).
     """
 
-    def __init__(self, policy: TensorDictModuleBase, surrogate: Callable[[], float]) -> None:
-        self.policy, self.surrogate = policy, surrogate
-        self.start = self.best = surrogate()
+    def __init__(self, policy: TensorDictModuleBase, surrogate: Callable[[], torch.Tensor],
+                 tolerance: float = 0.0) -> None:
+        self.policy, self.surrogate, self.tolerance = policy, surrogate, tolerance
+        self.best_terms = surrogate()
+        self.start = self.best = self.kept_value = float(self.best_terms.mean())
         self.kept = self._weights()
         self.checked_at = 0  # updates taken when last checked
         self.kept_updates = 0  # updates in the policy the rule last kept
 
     def improved(self, updates: int) -> bool:
-        """After ``updates`` updates: whether the surrogate rose since the last check; if not, the
-        policy is restored to the last check where it did."""
+        """After ``updates`` updates: whether the surrogate rose above its best so far (or, with a
+        tolerance, fell below it within the noise); if not, the policy is restored to the last
+        check that kept it."""
         self.checked_at = updates
-        current = self.surrogate()
+        terms = self.surrogate()
+        current = float(terms.mean())
         if current > self.best:
-            self.best, self.kept, self.kept_updates = current, self._weights(), updates
-            return True
-        self.policy.load_state_dict(self.kept)
-        return False
+            self.best, self.best_terms = current, terms
+        elif not self._within_noise(terms, current):
+            self.policy.load_state_dict(self.kept)
+            return False
+        self.kept, self.kept_updates, self.kept_value = self._weights(), updates, current
+        return True
+
+    def _within_noise(self, terms: torch.Tensor, current: float) -> bool:
+        """Whether ``current`` is at most ``tolerance`` standard errors of the paired change below the best."""
+        if not self.tolerance or terms.numel() < 2:
+            return False
+        change = terms - self.best_terms
+        return current - self.best >= -self.tolerance * float(change.std()) / math.sqrt(change.numel())
 
     def finish(self, updates: int) -> None:
         """The last updates, if no check has seen them yet (the rule ran to ``max_updates``)."""
@@ -325,7 +358,7 @@ class RealCheck:
 
     def metrics(self, prefix: str) -> dict[str, float]:
         return {f"{prefix}kept_updates": float(self.kept_updates),
-                f"{prefix}real_surrogate_gain": self.best - self.start}
+                f"{prefix}real_surrogate_gain": self.kept_value - self.start}
 
     def _weights(self) -> dict[str, torch.Tensor]:
         return {name: value.detach().clone() for name, value in self.policy.state_dict().items()}

@@ -77,11 +77,12 @@ class TRPOLearner:
                                   f"({'; '.join(self.updater.skip_reasons)})")
         return metrics
 
-    def real_surrogate(self, batch: TensorDictBase) -> float:
-        """TRPO's surrogate of the current policy on ``batch``, a batch this learner has updated on:
-        ``mean(pi(a|s) / pi_k(a|s) * A)`` with the collecting policy's log-probabilities and the
-        (standardised) advantages of that update. What ``imagination.stopping.kind=real`` checks
-        imagined updates against (:class:`~unipolicy_rl.collectors.RealCheck`).
+    def real_surrogate(self, batch: TensorDictBase) -> torch.Tensor:
+        """TRPO's surrogate of the current policy on ``batch``, a batch this learner has updated on,
+        one term per sample: ``pi(a|s) / pi_k(a|s) * A`` with the collecting policy's
+        log-probabilities and the (standardised) advantages of that update; the surrogate is their
+        mean. What ``imagination.stopping.kind=real`` checks imagined updates against
+        (:class:`~unipolicy_rl.collectors.RealCheck`, which pairs the terms of two checks).
 
         The observations are normalised afresh: the batch holds them as the collecting policy's
         normaliser saw them, before the epoch's refresh.
@@ -97,7 +98,7 @@ class TRPOLearner:
         probe = flat.select(*self.observation_keys, keys.action, keys.sample_log_prob).clone()
         with torch.no_grad():
             distribution = self.loss.policy_distribution(self.normalizer(probe))
-            return self.loss.surrogate_advantage(distribution, probe, self.loss.advantage(flat)).item()
+            return self.loss.surrogate_terms(distribution, probe, self.loss.advantage(flat)).reshape(-1)
 
     def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
         """The trust region does not bound what a refresh does to the policy: its KL (on the

@@ -255,13 +255,22 @@ class TRPOLoss(LossModule):
         advantage: torch.Tensor,
     ) -> torch.Tensor:
         """``mean(exp(log_prob - stored log_prob) * advantage)``, the quantity TRPO improves."""
+        return self.surrogate_terms(distribution, tensordict, advantage).mean()
+
+    def surrogate_terms(
+        self,
+        distribution: D.Distribution,
+        tensordict: TensorDictBase,
+        advantage: torch.Tensor,
+    ) -> torch.Tensor:
+        """Each sample's ``exp(log_prob - stored log_prob) * advantage``: the surrogate's terms."""
         stored_log_prob = _as_batch_shaped(
             _require(tensordict, self.tensor_keys.sample_log_prob, "behaviour log-prob").detach(),
             tensordict.batch_size,
             "stored log_prob",
         )
         ratio = torch.exp(self.log_prob(distribution, tensordict) - stored_log_prob)
-        return (ratio * advantage).mean()
+        return ratio * advantage
 
     @staticmethod
     def mean_kl(old: D.Distribution, new: D.Distribution) -> torch.Tensor:
