@@ -435,6 +435,7 @@ def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
     assert result.returncode == 0, result.stderr
     text = (tmp_path / "metrics.csv").read_text()
     assert "model/validation_mse" in text and "imagined/reward_per_step" in text
+    assert "model/kept_updates" in text  # source=pce keeps imagined updates by the real rule (short_branch)
 
 
 # ---- the thesis' ME-PCE (standalone) ----------------------------------------------------------
