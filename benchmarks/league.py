@@ -22,8 +22,8 @@ Wall times are the seconds a run spent training (each real epoch's ``time/collec
 out: an entry that learns slowly evaluates more often on its way to a level (the schedule is in
 real env steps) and is not charged for it. Compare them only between runs that shared the
 machine alike. CPU times are the CPU seconds of the same spans (``time/cpu``: every core, the
-collector's worker processes counted; a process waiting for a core spends none, so other load on
-the machine barely moves them); runs
+collector's worker processes counted; a process waiting for a core spends none, so load on the
+machine moves them far less than wall seconds); runs
 from before the column existed have none ("-").
 """
 

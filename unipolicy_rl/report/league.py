@@ -65,7 +65,7 @@ class Evaluation:
     grid_mean: float  # m
     grid_min: float  # m, the worst design
     # CPU seconds over the same spans, every core and the worker processes counted: a cost that
-    # other load on the machine barely inflates (NaN where the run did not log it)
+    # load on the machine inflates far less than wall time (NaN where the run did not log it)
     cpu_seconds: float = math.nan
 
 

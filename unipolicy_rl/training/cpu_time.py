@@ -1,9 +1,11 @@
-"""CPU seconds a run spends, its worker processes included: a cost that other load barely inflates.
+"""CPU seconds a run spends, its worker processes included: a cost that load inflates far less than wall time.
 
 Wall seconds measure what a user waits for, but on a shared machine they grow with everything
 else that runs: a process that waits for a core adds wall seconds and no CPU seconds. CPU
-seconds (user + system, summed over every core) count the work itself, so runs of different
-days and loads can be compared by them (what sharing a core costs in caches is left in).
+seconds (user + system, summed over every core) count the work itself, so they move far less
+with the load: 8 small SE-TRPO epochs took 4.0 wall s and 7.3 CPU s alone, 10.1 and 9.1 beside
+two busy loops on the same 2 cores (docs/results.md, "The league"). Not an exact yardstick: what
+sharing a core costs in caches, and any waiting a process spends spinning, is left in.
 The count covers this process (all its threads: a model fit on a second thread too) and every
 live descendant, such as the collector's worker processes, read from Linux's ``/proc``;
 processes that already ended count through their parent's ``cutime``/``cstime``. Ray actors
