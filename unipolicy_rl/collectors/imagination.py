@@ -308,7 +308,7 @@ class RealCheck:
 
     That sign is noisy: on 1,000 real samples the change a few updates make is often within the
     estimate's noise, and a good model's updates are then refused as often as a biased one's
-    (docs/results.md, the MOE with this rule). ``tolerance`` > 0 also keeps the updates where the
+    (docs/results.md, "twelfth day": the ensemble with this rule). ``tolerance`` > 0 also keeps the updates where the
     surrogate fell below its best by at most ``tolerance`` standard errors of that fall, the
     samples paired (the same batch under both policies): only a fall the batch can tell from
     noise stops the epoch.
