@@ -92,6 +92,11 @@ def elapsed_seconds(run: Run) -> np.ndarray:
     return np.cumsum(np.sum(parts, axis=0)) if parts else np.full(len(run.rows), math.nan)
 
 
+def real_rows(run: Run) -> np.ndarray:
+    """Per row: whether it is a real epoch's (not an imagined batch's, whose times are parts of it)."""
+    return column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
+
+
 def training_seconds(run: Run) -> np.ndarray:
     """Per row: the wall seconds the run spent training up to it, its periodic evaluations and
     checkpoints left out, so that a learner that evaluates more often on its way to a level (the
@@ -102,7 +107,7 @@ def training_seconds(run: Run) -> np.ndarray:
     falls back to its elapsed time (:func:`elapsed_seconds`)."""
     if not all(name in run.columns for name in EPOCH_TIMES):
         return elapsed_seconds(run)
-    real = column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
+    real = real_rows(run)
     spent = np.sum([np.nan_to_num(column(run, name)) for name in EPOCH_TIMES], axis=0)
     return np.cumsum(np.where(real, spent, 0.0))
 
@@ -114,7 +119,7 @@ def training_cpu_seconds(run: Run) -> np.ndarray:
     from before the column existed), never a sum with a part missing."""
     if CPU_TIME not in run.columns:
         return np.full(len(run.rows), math.nan)
-    real = column(run, IMAGINED) != 1.0 if IMAGINED in run.columns else np.ones(len(run.rows), dtype=bool)
+    real = real_rows(run)
     return np.cumsum(np.where(real, column(run, CPU_TIME), 0.0))
 
 
