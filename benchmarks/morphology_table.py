@@ -17,7 +17,7 @@ line per entry and morphology. Writes ``morphology_table.csv`` and ``morphologie
 morphology rendered in PyBullet (at the mean design), titled with its side and every entry's
 and its specialist's grid mean (``--no-pictures`` skips the renders). Every specialist's final
 evaluation comes first (and ``specialists.csv``), so a study whose universal runs have not
-finished still shows what it has measured.
+finished still shows what it has measured: then the figure shows the specialists alone.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import math
 import sys
 from dataclasses import asdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pybullet
@@ -72,31 +73,65 @@ def render(derivation: str, width: int = 240, height: int = 180) -> np.ndarray:
     return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3]
 
 
-def draw(comparisons, path: Path) -> None:
-    """A grid of renders, one per morphology, titled with each entry's and the specialist's grid mean."""
-    import matplotlib
+class Panel(NamedTuple):
+    """One morphology's picture in the figure and the lines of its title."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    derivation: str
+    side: str
+    links: int
+    lines: tuple[str, ...]
 
+
+def comparison_panels(comparisons) -> list[Panel]:
+    """A panel per morphology: its side and size, its specialist's grid mean and every entry's."""
     by_morphology: dict[str, list] = {}
     for row in comparisons:
         by_morphology.setdefault(row.derivation, []).append(row)
-    order = sorted(by_morphology, key=lambda d: (by_morphology[d][0].side, by_morphology[d][0].links, d))
-    columns = min(6, len(order))
-    rows = math.ceil(len(order) / columns)
-    figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.0 * rows), squeeze=False)
-    for axis in axes.flat:
-        axis.axis("off")
-    for axis, derivation in zip(axes.flat, order, strict=False):
-        entries = by_morphology[derivation]
-        axis.imshow(render(derivation))
+    panels = []
+    for derivation, entries in by_morphology.items():
         specialist = entries[0].specialist
         lines = [f"{entries[0].side}, {entries[0].links} links",
                  "specialist " + ("-" if specialist is None else f"{specialist:.2f} m")]
         lines += [f"{row.entry.split(',')[0]} x{row.entry.split(',')[1].split()[0]}: {row.universal:.2f} m"
                   for row in entries]
-        axis.set_title("\n".join(lines), fontsize=7)
+        panels.append(Panel(derivation, entries[0].side, entries[0].links, tuple(lines)))
+    return panels
+
+
+def specialist_panels(specialists) -> list[Panel]:
+    """A panel per specialist's morphology, before any universal run has finished: its side, index
+    and size, and the median over its seeds of the grid mean and the worst design."""
+    by_morphology: dict[str, list] = {}
+    for score in specialists:
+        by_morphology.setdefault(score.derivation, []).append(score)
+    panels = []
+    for derivation, scores in by_morphology.items():
+        first = scores[0]
+        mean = float(np.median([score.mean_displacement for score in scores]))
+        worst = float(np.median([score.worst_displacement for score in scores]))
+        seeds = "" if len(scores) == 1 else f" ({len(scores)} seeds)"
+        lines = (f"{first.side} {first.index}, {first.links} links",
+                 f"specialist {mean:.2f} m{seeds}", f"worst design {worst:.2f} m")
+        panels.append(Panel(derivation, first.side, first.links, lines))
+    return panels
+
+
+def draw(panels: list[Panel], path: Path) -> None:
+    """A grid of renders, one per morphology (training side first, then by size), each titled with its lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = sorted(panels, key=lambda panel: (panel.side == "held_out", panel.side, panel.links, panel.derivation))
+    columns = min(6, len(order))
+    rows = math.ceil(len(order) / columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.0 * rows), squeeze=False)
+    for axis in axes.flat:
+        axis.axis("off")
+    for axis, panel in zip(axes.flat, order, strict=False):
+        axis.imshow(render(panel.derivation))
+        axis.set_title("\n".join(panel.lines), fontsize=7)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=110)
@@ -129,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
             writer.writerows(asdict(score) for score in specialists)
     if not comparisons:
         print("no universal run has a final evaluation yet: the specialists only")
+        if not args.no_pictures:
+            draw(specialist_panels(specialists), args.out / "morphologies.png")
+            print(f"wrote {args.out / 'morphologies.png'}")
         return 0
     print(format_table(comparisons, summarize(comparisons)))
     with (args.out / "morphology_table.csv").open("w", newline="") as file:
@@ -136,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         writer.writeheader()
         writer.writerows({**asdict(row), "ratio": row.ratio} for row in comparisons)
     if not args.no_pictures:
-        draw(comparisons, args.out / "morphologies.png")
+        draw(comparison_panels(comparisons), args.out / "morphologies.png")
         print(f"wrote {args.out / 'morphologies.png'}")
     return 0
 

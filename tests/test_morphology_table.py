@@ -131,3 +131,29 @@ def test_the_specialists_are_listed_before_any_universal_run_has_finished(tmp_pa
     assert "| held_out | 0 | 3 | 7 | 2.00 m | 1.00 m | x |" in printed and "the specialists only" in printed
     with (tmp_path / "out" / "specialists.csv").open(newline="") as file:
         assert [row["derivation"] for row in csv.DictReader(file)] == ["a", "b", "x"]
+
+
+def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_path, capsys):
+    """Panels from specialists alone: one per morphology, the median over its seeds, training side first."""
+    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    scores = [table.SpecialistScore("held_out", 0, 0, 9, 2.0, 1.0, "x"),
+              table.SpecialistScore("train", 1, 0, 12, 1.0, 0.5, "b"),
+              table.SpecialistScore("train", 1, 1, 12, 3.0, 1.5, "b"),
+              table.SpecialistScore("train", 1, 2, 12, 8.0, 0.0, "b")]
+    panels = {panel.derivation: panel for panel in benchmark.specialist_panels(scores)}
+    assert panels["b"].lines == ("train 1, 12 links", "specialist 3.00 m (3 seeds)", "worst design 0.50 m")
+    assert panels["x"].lines == ("held_out 0, 9 links", "specialist 2.00 m", "worst design 1.00 m")
+
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.envs.config import grammar_morphologies
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_size=2"])
+    split, _ = grammar_morphologies(cfg, "all")
+    write_run(tmp_path, "specialist", "token_mlp", {" ".join(split.train[0].derivation()): 2.5}, specialist=0)
+    assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    assert "the specialists only" in capsys.readouterr().out
+    assert (tmp_path / "out" / "morphologies.png").stat().st_size > 0
