@@ -282,6 +282,43 @@ def test_advantage_normalisation_and_constant_advantage():
     assert result.skip_reason == "zero policy gradient"
 
 
+def test_an_entropy_bonus_raises_the_std_where_the_surrogate_has_nothing_to_improve():
+    """With a constant advantage the surrogate's gradient is zero: plain TRPO skips the step,
+    while a bonus on the entropy moves the log-std up, within the trust region."""
+    plain = make_loss()
+    bonus = make_loss()
+    bonus.entropy_coeff = 0.05
+    bonus.load_state_dict(plain.state_dict())
+    batch = collect(plain, torch.randn(64, 3))
+    plain.compute_advantage(batch)
+    batch["advantage"] = torch.full((64, 1), 3.0)
+    assert natural_gradient_step(plain, batch).skip_reason == "zero policy gradient"
+    entropy_before = bonus.policy_distribution(batch).entropy().mean()
+    result = natural_gradient_step(bonus, batch, trust_region=TrustRegion(max_kl=0.01))
+    assert result.accepted, result.skip_reason
+    assert 0 < result.kl <= 0.01
+    gained = bonus.policy_distribution(batch).entropy().mean() - entropy_before
+    assert gained > 0 and result.surrogate_improvement == pytest.approx(0.05 * gained.item(), rel=1e-3)
+    out = bonus(batch)
+    assert out["loss_entropy"].item() == pytest.approx(-0.05 * out["entropy"].item())
+
+
+def test_without_an_entropy_bonus_the_objective_is_the_surrogate_bit_for_bit():
+    loss = make_loss()
+    batch = collect(loss, torch.randn(8, 16, 3), done_every=4)
+    advantage = loss.advantage(batch)
+    distribution = loss.policy_distribution(batch)
+    assert torch.equal(loss.objective(distribution, batch, advantage),
+                       loss.surrogate_advantage(distribution, batch, advantage))
+    assert loss(batch)["loss_entropy"].item() == 0.0
+
+
+@pytest.mark.parametrize("value", [-0.01, math.nan, math.inf, True, "0.1"])
+def test_a_bad_entropy_coeff_is_refused_by_name(value):
+    with pytest.raises(ValueError, match="entropy_coeff"):
+        TRPOLoss(make_actor(3, 2, (8,)), make_critic(3, (8,)), entropy_coeff=value)
+
+
 # ----------------------------------------------------------------------- (6) set_keys
 def test_set_keys_renames_what_the_loss_reads_and_writes():
     loss = make_loss()

@@ -138,6 +138,7 @@ ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
         "algo.gamma": _number(0.0, 1.0, low_open=True),
         "algo.lmbda": _number(0.0, 1.0),
         "algo.normalize_advantage": _flag,
+        "algo.entropy_coeff": _number(0.0, INF, high_open=True),
         "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
         "algo.critic_epochs": POSITIVE,
         "algo.critic_minibatch_size": POSITIVE,

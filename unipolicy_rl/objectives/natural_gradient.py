@@ -3,7 +3,9 @@
 Written to be read top to bottom (in the spirit of stable-baselines3-contrib's TRPO), with each
 guard next to the failure it prevents:
 
-1. ``g``: flat gradient of the surrogate advantage ``mean(ratio * A)`` at the current policy.
+1. ``g``: flat gradient of the surrogate advantage ``mean(ratio * A)`` at the current policy
+   (:meth:`TRPOLoss.objective`: plus ``entropy_coeff`` times the mean entropy, where set; "the
+   surrogate" below is that objective).
 2. ``F v``: Fisher-vector product, the Hessian of the mean ``KL(pi_detached || pi)`` times
    ``v``. The reference distribution is a *detached copy of the current policy*, so the KL and
    its gradient are zero at the current parameters and its Hessian there is the Fisher
@@ -111,7 +113,8 @@ class TRPOStepResult:
         accepted: whether the parameters changed.
         skip_reason: ``None`` when accepted, otherwise why the step was not taken.
         kl: mean ``KL(old || new)`` after the step (0 when not accepted).
-        surrogate_improvement: actual increase of the surrogate advantage (0 when not accepted).
+        surrogate_improvement: actual increase of the surrogate advantage, with its entropy bonus
+            where the loss has one (0 when not accepted).
         expected_improvement: first-order prediction ``g . delta_theta`` for the step applied
             (for the full step when none was applied). ``surrogate_improvement /
             expected_improvement`` near 1 means the linear model was trustworthy.
@@ -377,7 +380,7 @@ def natural_gradient_step(
         policy = loss_module.distribution_from_params(dist_params)
         # The current policy, frozen: the centre of the trust region and the KL's reference.
         reference = loss_module.distribution_from_params(dist_params.detach())
-        surrogate = loss_module.surrogate_advantage(policy, batch, advantage)
+        surrogate = loss_module.objective(policy, batch, advantage)
         entropy = float(reference.entropy().mean())
 
         gradient = flat_grad(surrogate, params, retain_graph=True)
@@ -427,7 +430,7 @@ def natural_gradient_step(
             fraction = backtrack_factor ** (tries - 1)
             _apply_step(params, originals, fraction * full_step)
             candidate = loss_module.policy_distribution(batch)
-            improvement = float(loss_module.surrogate_advantage(candidate, batch, advantage) - surrogate_before)
+            improvement = float(loss_module.objective(candidate, batch, advantage) - surrogate_before)
             new_kl = float(loss_module.mean_kl(reference, candidate))
             # Both conditions, on the true (not quadratic) KL: the quadratic model can
             # under-estimate the KL, and a first-order gain can be a real loss.

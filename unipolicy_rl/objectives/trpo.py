@@ -11,12 +11,13 @@ policy moves by one natural-gradient step per batch (see
 :mod:`unipolicy_rl.objectives.natural_gradient`; :mod:`unipolicy_rl.objectives.updater` adds the
 critic fit), which uses the building blocks exposed here
 (:meth:`TRPOLoss.advantage`, :meth:`TRPOLoss.policy_distribution_params`,
-:meth:`TRPOLoss.surrogate_advantage`, :meth:`TRPOLoss.mean_kl`). ``forward`` reports the same
+:meth:`TRPOLoss.objective`, :meth:`TRPOLoss.mean_kl`). ``forward`` reports the same
 quantities as a TensorDict so the loss can be logged, tested and composed like any TorchRL loss.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -49,6 +50,12 @@ class TRPOLoss(LossModule):
             step independent of the reward scale.
         advantage_eps: added to the advantage std so a constant advantage does not divide by
             zero. Defaults to ``1e-8``.
+        entropy_coeff: weight of the mean policy entropy added to the surrogate the step
+            improves (TorchRL's PPO losses call it the same). Defaults to ``0.0``, TRPO as
+            published. Every step sits at the trust region's edge and shrinks the policy's
+            std a little, and the KL charges a move of the mean by its size in units of the
+            std: with a small std each step moves the mean less. A positive weight holds the
+            std up against that fall.
 
     ``forward(tensordict)`` returns a TensorDict with
 
@@ -57,7 +64,9 @@ class TRPOLoss(LossModule):
     * ``loss_critic``: ``critic_coeff * mean((V(s) - value_target)^2)``;
     * ``kl``: mean ``KL(old || new)``, the old policy rebuilt from the stored ``loc``/``scale``
       (detached; for logging and for checking the trust region);
-    * ``entropy``: mean policy entropy (detached; for logging).
+    * ``entropy``: mean policy entropy (detached; for logging);
+    * ``loss_entropy``: ``-entropy_coeff * entropy`` (differentiable), the bonus's part of the
+      objective (0 with the default ``entropy_coeff``).
 
     When the input has no advantage entry, the value estimator (GAE with gamma 0.99 and
     lambda 0.95 unless :meth:`make_value_estimator` says otherwise) fills it in first.
@@ -120,7 +129,11 @@ class TRPOLoss(LossModule):
         critic_coeff: float = 1.0,
         normalize_advantage: bool = True,
         advantage_eps: float = 1e-8,
+        entropy_coeff: float = 0.0,
     ) -> None:
+        if isinstance(entropy_coeff, bool) or not (isinstance(entropy_coeff, (int, float))
+                                                   and math.isfinite(entropy_coeff) and entropy_coeff >= 0):
+            raise ValueError(f"entropy_coeff must be a finite number >= 0, got {entropy_coeff!r}")
         self._in_keys = None
         super().__init__()
         self.convert_to_functional(actor_network, "actor_network")
@@ -129,6 +142,7 @@ class TRPOLoss(LossModule):
         self.register_coeff_buffer("critic_coeff", critic_coeff, device=device)
         self.normalize_advantage = normalize_advantage
         self.advantage_eps = advantage_eps
+        self.entropy_coeff = float(entropy_coeff)
         # Read the actor's own action / log-prob keys so a renamed actor needs no set_keys.
         log_prob_keys = getattr(actor_network, "log_prob_keys", None)
         sample_keys = getattr(actor_network, "dist_sample_keys", None)
@@ -153,7 +167,7 @@ class TRPOLoss(LossModule):
 
     @property
     def out_keys(self) -> list[str]:
-        return ["loss_objective", "loss_critic", "kl", "entropy"]
+        return ["loss_objective", "loss_critic", "kl", "entropy", "loss_entropy"]
 
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams):
         """Build the advantage estimator (GAE, gamma 0.99, lambda 0.95 by default)."""
@@ -272,6 +286,19 @@ class TRPOLoss(LossModule):
         ratio = torch.exp(self.log_prob(distribution, tensordict) - stored_log_prob)
         return ratio * advantage
 
+    def objective(
+        self,
+        distribution: D.Distribution,
+        tensordict: TensorDictBase,
+        advantage: torch.Tensor,
+    ) -> torch.Tensor:
+        """What TRPO's step improves: the surrogate advantage, plus ``entropy_coeff`` times the
+        mean policy entropy where that is set (with 0 the surrogate itself, bit for bit)."""
+        surrogate = self.surrogate_advantage(distribution, tensordict, advantage)
+        if self.entropy_coeff == 0.0:
+            return surrogate
+        return surrogate + self.entropy_coeff * distribution.entropy().mean()
+
     @staticmethod
     def mean_kl(old: D.Distribution, new: D.Distribution) -> torch.Tensor:
         """Mean over the batch of ``KL(old || new)`` (summed over action dimensions).
@@ -303,15 +330,16 @@ class TRPOLoss(LossModule):
         advantage = self.advantage(tensordict)
         distribution = self.policy_distribution(tensordict)
         surrogate = self.surrogate_advantage(distribution, tensordict, advantage)
+        entropy = distribution.entropy().mean()
         with torch.no_grad():
             kl = self.mean_kl(self.behaviour_distribution(tensordict), distribution)
-            entropy = distribution.entropy().mean()
         return TensorDict(
             {
                 "loss_objective": -surrogate,
                 "loss_critic": self.critic_loss(tensordict),
                 "kl": kl,
-                "entropy": entropy,
+                "entropy": entropy.detach(),
+                "loss_entropy": -self.entropy_coeff * entropy,
             },
             batch_size=[],
         )
