@@ -77,6 +77,40 @@ def test_the_summary_takes_medians_over_trained_and_held_out_morphologies_and_co
     assert "| token_transformer, 2 morphologies | 62% (2 compared) | 1/2 | 75% (1 compared) | 2.00 m |" in text
 
 
+def test_a_model_based_run_is_an_entry_measured_against_the_real_specialists(tmp_path):
+    """source=moe cut to one robot is not a reference: it is compared with the real specialist."""
+    paths = [write_run(tmp_path, "spec_a", "token_mlp", {"a": 4.0}, specialist=0),
+             write_run(tmp_path, "moe_a", "token_mlp", {"a": 3.0}, specialist=0)]
+    config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
+    config.source = {"name": "moe", "kind": "model"}
+    OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
+    runs = [load_run(path, path.name) for path in paths]
+    assert [table.is_specialist(run) for run in runs] == [True, False]
+    assert [score.mean_displacement for score in table.specialist_scores(runs)] == [4.0]
+    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    assert (row.entry, row.universal, row.specialist, row.ratio) == ("token_mlp on moe, 1 morphologies", 3.0, 4.0, 0.75)
+    text = table.format_table([row], table.summarize([row]))
+    assert "| token_mlp on moe, 1 morphologies | 75% (1 compared) | 1/1 | - (0 compared) | - |" in text
+
+
+def test_a_run_cut_to_one_robot_trained_on_that_robot_alone(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.envs.config import grammar_morphologies
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["source=moe", "robot=grammar", "policy=token_mlp", "robot.specialist=1",
+                                           "robot.split.train_size=3", "robot.split.held_out_size=2"])
+    cfg.run_name = "se-moe-trpo"
+    path = write_run(tmp_path, "moe_train1", "token_mlp", {})
+    OmegaConf.save(cfg, path / ".hydra" / "config.yaml")
+    split, _ = grammar_morphologies(cfg, "all")
+    sides = table.split_sides(load_run(path, path.name))
+    names = [" ".join(morphology.derivation()) for morphology in (*split.train, *split.held_out)]
+    assert [sides[name] for name in names] == [table.UNTRAINED, table.TRAINED, table.UNTRAINED,
+                                               table.HELD_OUT, table.HELD_OUT]
+
+
 def test_an_evaluation_run_again_counts_once_with_its_last_row(tmp_path):
     path = write_run(tmp_path, "spec", "token_mlp", {"a": 1.0}, specialist=0)
     with (path / table.MORPHOLOGIES_CSV).open("a", newline="") as file:

@@ -1,8 +1,10 @@
 """One policy for many robots against a specialist per robot: the table of issue 23, from run folders.
 
-A *specialist* run trains on one morphology of the grammar's split (``robot.specialist``); a
-*universal* run on the first ``robot.training_morphologies`` of its training side (all of them
-when unset). Both write their final evaluation per morphology to
+A *specialist* run trains on one morphology of the grammar's split (``robot.specialist``) on
+real data; a *universal* run on the first ``robot.training_morphologies`` of its training side
+(all of them when unset). A run on a world model's data (``source=moe``) is an entry of its own,
+cut to one robot or not, measured against the same specialists (what a world model is worth on
+the grammar's robots, beside what it costs in real env steps). Both write their final evaluation per morphology to
 ``evaluation/morphologies.csv`` (the deterministic policy on the ``evaluation.grid`` design grid,
 one row per morphology, its derivation included), which is all this module reads, beside the
 run's config. Morphologies are matched by their derivation, so a specialist and a universal
@@ -128,15 +130,25 @@ def is_grammar_run(run: Run) -> bool:
     return bool(run.config) and (run.config.get("robot") or {}).get("kind") == "grammar"
 
 
+def is_model_based(run: Run) -> bool:
+    """Trained on a world model's data (``source.kind: model``)."""
+    return (run.config.get("source") or {}).get("kind") == "model"
+
+
 def is_specialist(run: Run) -> bool:
-    return is_grammar_run(run) and run.config["robot"].get("specialist") is not None
+    """The reference a morphology is measured against: SE-TRPO on that robot alone, on real data.
+    (A model-based run cut to one robot is an entry of its own, measured against it.)"""
+    return (is_grammar_run(run) and run.config["robot"].get("specialist") is not None
+            and not is_model_based(run))
 
 
 def entry_name(run: Run) -> str:
-    """A universal run's entry: its policy and the number of morphologies it trained on."""
+    """A run's entry: its policy, the world model it trained on (if any) and the number of
+    morphologies it trained on (1 for a run cut to one robot)."""
     robot = run.config["robot"]
-    count = robot.get("training_morphologies")
-    return f"{run.config['policy']['name']}, {'all' if count is None else count} morphologies"
+    count = 1 if robot.get("specialist") is not None else robot.get("training_morphologies")
+    source = f" on {run.config['source']['name']}" if is_model_based(run) else ""
+    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies"
 
 
 def split_sides(run: Run) -> dict[str, str]:
@@ -144,11 +156,15 @@ def split_sides(run: Run) -> dict[str, str]:
     # Imported here: drawing a split builds robots, which only this question needs.
     from unipolicy_rl.envs.config import grammar_morphologies
 
-    config = OmegaConf.create({**run.config, "robot": {**run.config["robot"], "specialist": None}})
+    robot = run.config["robot"]
+    config = OmegaConf.create({**run.config, "robot": {**robot, "specialist": None}})
     split, trained = grammar_morphologies(config, "train")
+    if robot.get("specialist") is not None:  # a run cut to one robot trained on that robot only
+        side = split.held_out if robot.get("morphologies") == "held_out" else split.train
+        trained = [side[int(robot["specialist"])]]
     sides = {" ".join(morphology.derivation()): UNTRAINED for morphology in split.train}
-    sides.update({" ".join(morphology.derivation()): TRAINED for morphology in trained})
     sides.update({" ".join(morphology.derivation()): HELD_OUT for morphology in split.held_out})
+    sides.update({" ".join(morphology.derivation()): TRAINED for morphology in trained})
     return sides
 
 
@@ -204,7 +220,7 @@ def format_table(comparisons: Sequence[Comparison], summaries: Sequence[EntrySum
     for summary in summaries:
         lines.append(f"| {summary.entry} | {_percent(summary.trained_ratio)} ({summary.trained_compared} compared) | "
                      f"{summary.trained_walking}/{summary.trained} | {_percent(summary.held_out_ratio)} "
-                     f"({summary.held_out_compared} compared) | {summary.held_out_mean:.2f} m |")
+                     f"({summary.held_out_compared} compared) | {_metres(summary.held_out_mean)} |")
     lines += ["", "| entry | side | links | universal grid mean | specialist grid mean | ratio | derivation |",
               "|---|---|---|---|---|---|---|"]
     for row in sorted(comparisons, key=lambda row: (row.entry, row.side, row.links, row.derivation)):
@@ -216,3 +232,8 @@ def format_table(comparisons: Sequence[Comparison], summaries: Sequence[EntrySum
 
 def _percent(value: float) -> str:
     return "-" if math.isnan(value) else f"{100 * value:.0f}%"
+
+
+def _metres(value: float) -> str:
+    """A grid mean, or "-" where there is none (an entry evaluated on no held-out robot)."""
+    return "-" if math.isnan(value) else f"{value:.2f} m"
