@@ -17,9 +17,13 @@ saving a checkpoint the next queue resumes from.
 
 The runs are niced (``--nice``) so that work in the foreground keeps the cores it asks for.
 
-``--archive DEST`` copies each run's record (config, metrics, commands; not its checkpoint) to
+``--archive DEST`` copies each run's record (config, metrics, commands; its checkpoint only as below) to
 ``DEST/<entry>/seed<k>`` as it exits and every ``--archive-every`` seconds while it runs
 (:func:`~unipolicy_rl.report.runs.archive_run`), so a study cut with its machine keeps what its runs had measured.
+``--carry-checkpoints MIB`` also archives each run's checkpoint where it is at most that many MiB
+(an on-policy run's, about 1 MB; not a replay buffer's), and restores a run whose folder has no
+checkpoint from the archive's before it starts: a study whose machine is taken back, its run
+folders with it, resumes from the committed archive on the next machine.
 ``--stop-after MINUTES`` stops the queue that long after it started, as SIGTERM would (runs end at
 their epoch's end with a checkpoint, and are archived): on a machine lent for a fixed time, the
 records are final before it goes.
@@ -40,7 +44,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from unipolicy_rl.report.runs import ReportError, archive_run
+from unipolicy_rl.report.runs import ReportError, archive_run, restore_run
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
@@ -106,8 +110,9 @@ class Queue:
     """At most ``jobs`` runs at once; a stop request is passed on to the running ones."""
 
     def __init__(self, code: Path, commit: str, jobs: int, nice: int, archive: Path | None = None,
-                 archive_every: float = 600.0, stop_after: float | None = None) -> None:
+                 archive_every: float = 600.0, stop_after: float | None = None, checkpoint_limit: int = 0) -> None:
         self.code, self.commit, self.jobs, self.nice = code, commit, jobs, nice
+        self.checkpoint_limit = checkpoint_limit  # bytes; 0: checkpoints are not archived
         self.stop_at = None if stop_after is None else time.monotonic() + stop_after
         self.archive, self.archive_every, self.archived_at = archive, archive_every, time.monotonic()
         self.running: dict[subprocess.Popen, Run] = {}
@@ -161,9 +166,21 @@ class Queue:
         if self.archive is None:
             return
         try:
-            archive_run(run.folder, self.archive / run.entry / f"seed{run.seed}")
+            archive_run(run.folder, self.archived(run), self.checkpoint_limit)
         except (ReportError, OSError) as error:  # a run with no epoch yet, a full disk: the queue goes on
             print(f"queue: not archived: {error}", flush=True)
+
+    def archived(self, run: Run) -> Path:
+        return self.archive / run.entry / f"seed{run.seed}"
+
+    def restore(self, run: Run) -> None:
+        """A run with no checkpoint of its own starts from the archive's, where checkpoints are carried."""
+        if not self.checkpoint_limit or (run.folder / CHECKPOINT).is_file():
+            return
+        if (self.archived(run) / CHECKPOINT).is_file():
+            restore_run(self.archived(run), run.folder)
+            print(f"{run.entry} seed {run.seed}: restored from {self.archived(run)} at epoch {run.epochs_done()}",
+                  flush=True)
 
     def drain(self) -> None:
         while self.running:
@@ -184,12 +201,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="copy each run's record here (<archive>/<entry>/seed<k>), e.g. docs/league/runs")
     parser.add_argument("--archive-every", type=float, default=600.0,
                         help="seconds between copies of the running runs' records (600)")
+    parser.add_argument("--carry-checkpoints", type=float, default=0.0, metavar="MIB",
+                        help="archive checkpoints up to this many MiB too, and restore runs without one from the "
+                             "archive (0: off); needs --archive")
     parser.add_argument("--stop-after", type=float, default=None,
                         help="minutes after which the queue stops its runs (at their epoch's end) and starts no more")
     parser.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
+    if not args.carry_checkpoints >= 0:
+        parser.error(f"--carry-checkpoints must be >= 0 MiB, got {args.carry_checkpoints}")
+    if args.carry_checkpoints and args.archive is None:
+        parser.error("--carry-checkpoints needs --archive (where the checkpoints are carried)")
     if args.stop_after is not None and not args.stop_after >= 0:
         parser.error(f"--stop-after must be >= 0 minutes, got {args.stop_after}")
 
@@ -200,11 +224,13 @@ def main(argv: list[str] | None = None) -> int:
     runs = plan_runs(yaml.safe_load(args.plan.read_text()), args.entries.split(","), args.seeds, args.runs)
     archive = args.archive.resolve() if args.archive is not None else None
     queue = Queue(code, commit, args.jobs, args.nice, archive, args.archive_every,
-                  None if args.stop_after is None else 60 * args.stop_after)
+                  None if args.stop_after is None else 60 * args.stop_after, int(args.carry_checkpoints * 2**20))
     print(f"queue: {len(runs)} run(s) of commit {commit} from {code}, {args.jobs} at a time", flush=True)
     for run in runs:
         if queue.stopping:
             break
+        if not args.dry_run:
+            queue.restore(run)
         done = run.epochs_done()
         if done >= run.epochs and (run.folder / FINAL_EVALUATION).is_file():
             print(f"{run.entry} seed {run.seed}: done ({done} of {run.epochs} epochs)", flush=True)

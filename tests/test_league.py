@@ -9,6 +9,7 @@ import importlib.util
 import itertools
 import math
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -22,7 +23,7 @@ from omegaconf import OmegaConf
 
 from unipolicy_rl.evaluation import DesignResult
 from unipolicy_rl.report import league
-from unipolicy_rl.report.runs import load_run
+from unipolicy_rl.report.runs import ReportError, load_run, restore_run
 from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training import progress
 from unipolicy_rl.training.progress import PeriodicEvaluation, evaluation_points, evaluations_done
@@ -443,6 +444,42 @@ def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep
         original = league.run_result(load_run(runs / name, name))
         copy = league.run_result(load_run(tmp_path / "kept" / name, name))
         assert steps_at(copy) == steps_at(original) and copy.finished == original.finished
+
+
+def test_a_queue_carrying_checkpoints_resumes_a_run_whose_folder_went_with_its_machine(tmp_path, capsys):
+    queue = load_queue()
+    # A train.py that trains one epoch a call: a metrics row and a checkpoint, resumed from the one it is given.
+    code = committed_code(tmp_path / "code", """import sys, torch
+from pathlib import Path
+arguments = dict(part.split("=", 1) for part in sys.argv[1:])
+folder = Path(arguments["hydra.run.dir"])
+epoch = torch.load(arguments["resume"])["epoch"] + 1 if "resume" in arguments else 1
+with open(folder / "metrics.csv", "a") as metrics:
+    metrics.write("epoch,real_env_steps\\n" if epoch == 1 else "")
+    metrics.write(f"{epoch},{1000 * epoch}\\n")
+torch.save({"epoch": epoch}, folder / "checkpoint.pt")
+""")
+    (tmp_path / "plan.yaml").write_text(yaml.safe_dump({"se-trpo": {"overrides": ["source=se"], "epochs": 5}}))
+    arguments = ["--code", str(code), "--runs", str(tmp_path / "runs"), "--plan", str(tmp_path / "plan.yaml"),
+                 "--entries", "se-trpo", "--seeds", "0", "--archive", str(tmp_path / "kept")]
+    assert queue.main(arguments + ["--carry-checkpoints", "1"]) == 0
+    kept = tmp_path / "kept" / "se-trpo" / "seed0"
+    assert torch.load(kept / "checkpoint.pt")["epoch"] == 1
+    shutil.rmtree(tmp_path / "runs")  # the machine, and its run folders, went back
+    assert queue.main(arguments + ["--carry-checkpoints", "1"]) == 0
+    assert "se-trpo seed 0: restored from" in capsys.readouterr().out
+    folder = tmp_path / "runs" / "se-trpo" / "seed0"
+    assert "resume=" in (folder / "commands.txt").read_text().splitlines()[-1]
+    assert (folder / "metrics.csv").read_text().splitlines() == ["epoch,real_env_steps", "1,1000", "2,2000"]
+    assert torch.load(kept / "checkpoint.pt")["epoch"] == 2
+    # Without the flag nothing is carried: a checkpoint above the limit stays behind, and an archive is
+    # never restored over a run folder's own checkpoint.
+    assert queue.main(arguments + ["--carry-checkpoints", "0.00001"]) == 0
+    assert torch.load(kept / "checkpoint.pt")["epoch"] == 2 and torch.load(folder / "checkpoint.pt")["epoch"] == 3
+    with pytest.raises(ReportError, match="of its own"):
+        restore_run(kept, folder)
+    with pytest.raises(SystemExit):
+        queue.main(arguments[:-2] + ["--carry-checkpoints", "1"])  # no --archive to carry them in
 
 
 def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):

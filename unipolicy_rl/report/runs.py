@@ -171,20 +171,52 @@ def record_files(run: Path) -> list[Path]:
     return files + sorted(path.relative_to(run) for path in run.glob(EVALUATION_TABLES))
 
 
-def archive_run(run: Path, destination: Path) -> list[Path]:
-    """Copies ``run``'s record into ``destination`` (created), each file written whole before it
-    replaces the old copy; returns the files copied, relative to the run folder."""
+def _copy_whole(source: Path, target: Path) -> None:
+    """``source`` to ``target`` (folders created), written whole under another name before it
+    replaces an older copy: a reader never sees half a file."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_name(target.name + ".partial")
+    shutil.copyfile(source, partial)
+    partial.replace(target)
+
+
+def archive_run(run: Path, destination: Path, checkpoint_limit: int = 0) -> list[Path]:
+    """Copies ``run``'s record into ``destination`` (created); returns the files copied, relative
+    to the run folder.
+
+    With ``checkpoint_limit`` (bytes) above 0 the run's checkpoint comes too where it is no larger:
+    a study whose machine is taken back mid-run then resumes on the next one from the archive
+    (:func:`restore_run`), not from its first epoch. An on-policy run's checkpoint is small (a
+    policy, a critic, the observation statistics: about 1 MB); an off-policy or model-based one
+    holds its replay buffer (tens to hundreds of MB) and stays behind.
+    """
+    if checkpoint_limit < 0:
+        raise ValueError(f"checkpoint_limit must be >= 0 bytes, got {checkpoint_limit!r}")
     files = record_files(run)
     if Path(METRICS) not in files:
         raise ReportError(f"{run}: no {METRICS}, so nothing to archive (it never finished an epoch)")
+    checkpoint = run / CHECKPOINT
+    if checkpoint_limit and checkpoint.is_file() and checkpoint.stat().st_size <= checkpoint_limit:
+        files.append(Path(CHECKPOINT))
     for name in files:
-        target = destination / name
-        target.parent.mkdir(parents=True, exist_ok=True)
-        partial = target.with_name(target.name + ".partial")
-        shutil.copyfile(run / name, partial)
-        partial.replace(target)
+        _copy_whole(run / name, destination / name)
     return files
 
+
+def restore_run(archived: Path, run: Path) -> list[Path]:
+    """Copies an archived run (its record and checkpoint, :func:`archive_run`) into the run folder
+    ``run``, so training resumes there where the archive's checkpoint stopped; returns the files
+    copied. Refuses (:class:`ReportError`) an archive without a checkpoint, and a run folder that
+    has one of its own: that checkpoint is newer than any archived copy of it.
+    """
+    if not (archived / CHECKPOINT).is_file():
+        raise ReportError(f"{archived}: no {CHECKPOINT} archived, nothing to resume from")
+    if (run / CHECKPOINT).is_file():
+        raise ReportError(f"{run}: has a {CHECKPOINT} of its own; it is not replaced by the archive's")
+    files = record_files(archived) + [Path(CHECKPOINT)]
+    for name in files:
+        _copy_whole(archived / name, run / name)
+    return files
 
 
 # -- reading one run -------------------------------------------------------------------
