@@ -20,7 +20,7 @@ The runs are niced (``--nice``) so that work in the foreground keeps the cores i
 ``--archive DEST`` copies each run's record (config, metrics, commands; its checkpoint only as below) to
 ``DEST/<entry>/seed<k>`` as it exits and every ``--archive-every`` seconds while it runs
 (:func:`~unipolicy_rl.report.runs.archive_run`), so a study cut with its machine keeps what its runs had measured.
-``--carry-checkpoints MIB`` also archives each run's checkpoint where it is at most that many MiB
+``--carry-checkpoints MIB`` also archives each unfinished run's checkpoint where it is at most that many MiB
 (an on-policy run's, about 1 MB; not a replay buffer's), and restores a run whose folder has no
 checkpoint from the archive's before it starts: a study whose machine is taken back, its run
 folders with it, resumes from the committed archive on the next machine.

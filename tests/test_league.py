@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 
 from unipolicy_rl.evaluation import DesignResult
 from unipolicy_rl.report import league
-from unipolicy_rl.report.runs import ReportError, load_run, restore_run
+from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run
 from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training import progress
 from unipolicy_rl.training.progress import PeriodicEvaluation, evaluation_points, evaluations_done
@@ -480,6 +480,12 @@ torch.save({"epoch": epoch}, folder / "checkpoint.pt")
         restore_run(kept, folder)
     with pytest.raises(SystemExit):
         queue.main(arguments[:-2] + ["--carry-checkpoints", "1"])  # no --archive to carry them in
+    # Finished (its final evaluation written), a run has nothing to resume: the archive drops its checkpoint.
+    (folder / "evaluation").mkdir()
+    (folder / queue.FINAL_EVALUATION).write_text("design\n")
+    files = archive_run(folder, kept, checkpoint_limit=2**20)
+    assert Path("checkpoint.pt") not in files and not (kept / "checkpoint.pt").exists()
+    assert (kept / queue.FINAL_EVALUATION).is_file()
 
 
 def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):

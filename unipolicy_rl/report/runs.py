@@ -188,18 +188,22 @@ def archive_run(run: Path, destination: Path, checkpoint_limit: int = 0) -> list
     a study whose machine is taken back mid-run then resumes on the next one from the archive
     (:func:`restore_run`), not from its first epoch. An on-policy run's checkpoint is small (a
     policy, a critic, the observation statistics: about 1 MB); an off-policy or model-based one
-    holds its replay buffer (tens to hundreds of MB) and stays behind.
+    holds its replay buffer (tens to hundreds of MB) and stays behind. A finished run (its final
+    evaluation written) has nothing left to resume: its archived checkpoint is removed, so the
+    archive holds checkpoints only while their runs are under way.
     """
     if checkpoint_limit < 0:
         raise ValueError(f"checkpoint_limit must be >= 0 bytes, got {checkpoint_limit!r}")
     files = record_files(run)
     if Path(METRICS) not in files:
         raise ReportError(f"{run}: no {METRICS}, so nothing to archive (it never finished an epoch)")
-    checkpoint = run / CHECKPOINT
-    if checkpoint_limit and checkpoint.is_file() and checkpoint.stat().st_size <= checkpoint_limit:
+    checkpoint, finished = run / CHECKPOINT, (run / DESIGNS).is_file()
+    if checkpoint_limit and not finished and checkpoint.is_file() and checkpoint.stat().st_size <= checkpoint_limit:
         files.append(Path(CHECKPOINT))
     for name in files:
         _copy_whole(run / name, destination / name)
+    if finished:
+        (destination / CHECKPOINT).unlink(missing_ok=True)
     return files
 
 
