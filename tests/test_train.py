@@ -117,12 +117,14 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     from unipolicy_rl.envs import MorphologyWalkerEnv
     from unipolicy_rl.envs.tokens import TOKENS
 
-    straight = run_train(*GRAMMAR_TINY, "epochs=2", "evaluation.morphologies=all", f"hydra.run.dir={tmp_path / 'a'}")
+    # Advantages standardised per morphology (algo.advantage_groups): the batch carries each robot's.
+    grouped = [*GRAMMAR_TINY, "algo.advantage_groups=morphology"]
+    straight = run_train(*grouped, "epochs=2", "evaluation.morphologies=all", f"hydra.run.dir={tmp_path / 'a'}")
     assert straight.returncode == 0, straight.stderr
-    first = run_train(*GRAMMAR_TINY, "epochs=1", "evaluation.morphologies=all",
+    first = run_train(*grouped, "epochs=1", "evaluation.morphologies=all",
                       f"hydra.run.dir={tmp_path / 'first'}")
     assert first.returncode == 0, first.stderr
-    resumed = run_train(*GRAMMAR_TINY, "epochs=2", "evaluation.morphologies=all",
+    resumed = run_train(*grouped, "epochs=2", "evaluation.morphologies=all",
                         f"resume={tmp_path / 'first' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'resumed'}")
     assert resumed.returncode == 0, resumed.stderr
     a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")

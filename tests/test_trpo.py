@@ -282,6 +282,42 @@ def test_advantage_normalisation_and_constant_advantage():
     assert result.skip_reason == "zero policy gradient"
 
 
+def test_advantages_standardised_within_groups_give_each_group_the_same_weight():
+    """Two robots in one batch, one whose advantages are 100 times the other's: over the batch the
+    small one's are nearly zero; within groups each has zero mean and unit std, and the step's
+    gradient then draws on both."""
+    loss = make_loss()
+    grouped = make_loss()
+    grouped.advantage_groups = "morphology"
+    batch = collect(loss, torch.randn(40, 3))
+    morphology = torch.tensor([0] * 24 + [3] * 15 + [7]).unsqueeze(-1)
+    batch["morphology"] = morphology
+    raw = torch.randn(40, 1)
+    raw[:24] = 100.0 * raw[:24] + 50.0
+    batch["advantage"] = raw
+    over_batch = loss.advantage(batch)
+    within = grouped.advantage(batch)
+    assert over_batch[24:39].std() < 0.05  # drowned by the first robot's scale
+    for members in (slice(0, 24), slice(24, 39)):
+        assert within[members].mean().abs() < 1e-5 and (within[members].std() - 1).abs() < 1e-4
+    assert within[39] == 0  # a group of one sample is centred
+    # Within-group standardisation is what the step sees: the same as standardising each group alone.
+    alone = (raw[24:39, 0] - raw[24:39, 0].mean()) / raw[24:39, 0].std()
+    torch.testing.assert_close(within[24:39], alone, atol=1e-5, rtol=0)
+    # The step still respects its KL bound.
+    result = natural_gradient_step(grouped, batch, trust_region=TrustRegion(max_kl=0.01))
+    assert result.accepted and 0 < result.kl <= 0.01
+
+
+def test_advantage_groups_missing_from_the_batch_are_named():
+    loss = make_loss()
+    loss.advantage_groups = "morphology"
+    batch = collect(loss, torch.randn(8, 3))
+    batch["advantage"] = torch.randn(8, 1)
+    with pytest.raises(KeyError, match="within the groups of morphology, which the batch does not have"):
+        loss.advantage(batch)
+
+
 def test_an_entropy_bonus_raises_the_std_where_the_surrogate_has_nothing_to_improve():
     """With a constant advantage the surrogate's gradient is zero: plain TRPO skips the step,
     while a bonus on the entropy moves the log-std up, within the trust region."""

@@ -171,6 +171,12 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         (["+robot.kind=snake"], "robot.kind must be one of"),
         ([*GRAMMAR, "policy=token_transformer", "policy.critic=attention"],
          r"policy.critic must be one of \('transformer', 'pooled', 'padded_mlp'\), got 'attention'"),
+        (["algo.advantage_groups=morphology"],
+         "algo.advantage_groups=morphology groups the batch by the robot's morphology, which only robot=grammar"),
+        ([*GRAMMAR, "policy=token_mlp", "algo.advantage_groups=design"],
+         r"algo.advantage_groups must be one of \['morphology'\] or null, got 'design'"),
+        ([*GRAMMAR, "policy=token_mlp", "algo.advantage_groups=morphology", "algo.normalize_advantage=false"],
+         "algo.advantage_groups=morphology standardises the advantages within groups, but algo.normalize_advantage=false"),
         ([*GRAMMAR, "policy=token_mlp", "policy.critic=transformer"],
          "policy.critic=transformer takes its sizes from policy.critic_network or policy.network, and "
          "policy=token_mlp has neither"),
@@ -185,6 +191,7 @@ def test_a_grammar_run_with_a_token_policy_is_valid():
     for policy in ("token_transformer", "token_mlp"):
         validate_config(composed([*GRAMMAR, f"policy={policy}", "robot.training_morphologies=2",
                                   "evaluation.morphologies=all", "algo.fisher_fraction=0.2"]))
+    validate_config(composed([*GRAMMAR, "policy=token_transformer", "algo.advantage_groups=morphology"]))
 
 
 def test_a_model_based_grammar_run_takes_the_ensemble_conditioned_on_the_morphology():

@@ -27,9 +27,15 @@ from unipolicy_rl.collectors.distributed import require_ray
 from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
 from unipolicy_rl.envs.morphology import SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
+from unipolicy_rl.envs.tokens import MORPHOLOGY
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
 from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES, token_critic
+
+
+# The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
+# have their advantages standardised together.
+ADVANTAGE_GROUPS = (MORPHOLOGY,)
 
 
 def _integer(minimum: int) -> Callable[[object], str | None]:
@@ -138,6 +144,7 @@ ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
         "algo.gamma": _number(0.0, 1.0, low_open=True),
         "algo.lmbda": _number(0.0, 1.0),
         "algo.normalize_advantage": _flag,
+        "algo.advantage_groups": _optional(_one_of(set(ADVANTAGE_GROUPS))),
         "algo.entropy_coeff": _number(0.0, INF, high_open=True),
         "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
         "algo.critic_epochs": POSITIVE,
@@ -190,6 +197,20 @@ def _grammar_learns_with_trpo(cfg: DictConfig) -> str | None:
     return None
 
 
+def _advantage_groups_exist(cfg: DictConfig) -> str | None:
+    """``algo.advantage_groups=morphology`` needs a robot that writes its morphology, and a normalisation."""
+    groups = cfg.algo.get("advantage_groups")
+    if groups is None:
+        return None
+    if not cfg.algo.normalize_advantage:
+        return (f"algo.advantage_groups={groups} standardises the advantages within groups, but "
+                f"algo.normalize_advantage=false standardises nothing: drop one of them")
+    if groups == MORPHOLOGY and robot_kind(cfg) != "grammar":
+        return (f"algo.advantage_groups={groups} groups the batch by the robot's morphology, which only "
+                f"robot=grammar writes (robot={robot_kind(cfg)} is one build): use algo.advantage_groups=null")
+    return None
+
+
 def _world_model_reads_the_robot(cfg: DictConfig) -> str | None:
     """A model source's world model must predict the state the robot's env writes: the
     vertebrate's flat state, or a grammar robot's link tokens (world_model.model_state=tokens,
@@ -232,6 +253,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot", "policy.name"): _policy_reads_the_robot,
     ("policy",): _token_critic_builds,
     ("robot", "algo.name"): _grammar_learns_with_trpo,
+    ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
 }
 

@@ -50,6 +50,13 @@ class TRPOLoss(LossModule):
             step independent of the reward scale.
         advantage_eps: added to the advantage std so a constant advantage does not divide by
             zero. Defaults to ``1e-8``.
+        advantage_groups: a batch key whose integer values group the samples (e.g.
+            ``"morphology"``): the advantages are then standardised within each group rather
+            than over the whole batch. Defaults to ``None`` (the whole batch). For robots of
+            many builds in one batch: over the batch, the robots whose returns vary most
+            carry the step and the trust region's KL budget, the others barely move (the
+            multi-task reward-scale problem PopArt addresses); within each group every build
+            pulls with the same weight. A group of one sample is centred to 0.
         entropy_coeff: weight of the mean policy entropy added to the surrogate the step
             improves (TorchRL's PPO losses call it the same). Defaults to ``0.0``, TRPO as
             published. Every step sits at the trust region's edge and shrinks the policy's
@@ -130,6 +137,7 @@ class TRPOLoss(LossModule):
         normalize_advantage: bool = True,
         advantage_eps: float = 1e-8,
         entropy_coeff: float = 0.0,
+        advantage_groups: NestedKey | None = None,
     ) -> None:
         if isinstance(entropy_coeff, bool) or not (isinstance(entropy_coeff, (int, float))
                                                    and math.isfinite(entropy_coeff) and entropy_coeff >= 0):
@@ -142,6 +150,7 @@ class TRPOLoss(LossModule):
         self.register_coeff_buffer("critic_coeff", critic_coeff, device=device)
         self.normalize_advantage = normalize_advantage
         self.advantage_eps = advantage_eps
+        self.advantage_groups = advantage_groups
         self.entropy_coeff = float(entropy_coeff)
         # Read the actor's own action / log-prob keys so a renamed actor needs no set_keys.
         log_prob_keys = getattr(actor_network, "log_prob_keys", None)
@@ -155,6 +164,8 @@ class TRPOLoss(LossModule):
         keys |= {_under_next(key) for key in self.critic_network.in_keys}  # for GAE's next value
         keys |= set(self.actor_network.dist_params_keys)
         keys |= {self.tensor_keys.action, self.tensor_keys.sample_log_prob}
+        if self.advantage_groups is not None:
+            keys.add(self.advantage_groups)
         for name in ("reward", "done", "terminated"):
             keys.add(_under_next(getattr(self.tensor_keys, name)))
         self._in_keys = sorted(keys, key=str)
@@ -206,13 +217,22 @@ class TRPOLoss(LossModule):
 
         Runs the value estimator first when the advantage key is missing. With a batch of one
         sample the standard deviation is undefined (NaN), so a single advantage is passed
-        through unnormalised instead of becoming NaN or zero.
+        through unnormalised instead of becoming NaN or zero. With ``advantage_groups`` the
+        standardisation runs within each group of the batch instead.
         """
         advantage = tensordict.get(self.tensor_keys.advantage, None)
         if advantage is None:
             self.compute_advantage(tensordict)
             advantage = tensordict.get(self.tensor_keys.advantage)
         advantage = _as_batch_shaped(advantage.detach(), tensordict.batch_size, "advantage")
+        if self.normalize_advantage and self.advantage_groups is not None:
+            groups = tensordict.get(self.advantage_groups, None)
+            if groups is None:
+                raise KeyError(f"{type(self).__name__} standardises advantages within the groups of "
+                               f"{self.advantage_groups}, which the batch does not have (its keys: "
+                               f"{', '.join(sorted(map(str, tensordict.keys())))})")
+            groups = _as_batch_shaped(groups, tensordict.batch_size, str(self.advantage_groups))
+            return _standardised_within_groups(advantage, groups, self.advantage_eps)
         if self.normalize_advantage and advantage.numel() > 1:
             advantage = (advantage - advantage.mean()) / (advantage.std() + self.advantage_eps)
         return advantage
@@ -358,6 +378,17 @@ def _require(tensordict: TensorDictBase, key: NestedKey, what: str) -> torch.Ten
             "TRPOLoss.set_keys(...) if your data uses another name"
         )
     return value
+
+
+def _standardised_within_groups(advantage: torch.Tensor, groups: torch.Tensor, eps: float) -> torch.Tensor:
+    """Zero mean and unit std within each group of equal ``groups`` values (a group of one: 0)."""
+    standardised = torch.empty_like(advantage)
+    for group in groups.unique():
+        members = groups == group
+        values = advantage[members]
+        centred = values - values.mean()
+        standardised[members] = centred / (values.std() + eps) if values.numel() > 1 else centred
+    return standardised
 
 
 def _as_batch_shaped(value: torch.Tensor, batch_size: torch.Size, name: str) -> torch.Tensor:
