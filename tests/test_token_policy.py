@@ -412,6 +412,30 @@ def test_the_critic_fit_lowers_the_value_loss_of_every_token_critic(critic_kind)
     assert value_loss() < 0.5 * before
 
 
+@pytest.mark.parametrize("critic_kind", TOKEN_CRITICS)
+def test_gae_runs_every_token_critic_on_states_and_next_states(critic_kind):
+    """The value estimator reads each critic on a batch's states and next states: the values it
+    writes are the critic's own (the transformer's cut of unused padding has a shape that depends
+    on the batch, which vmap cannot trace)."""
+    cfg = policy_config("token_transformer", f"policy.critic={critic_kind}", "policy.network.d_model=16",
+                        "policy.network.feedforward=32", "algo.critic_hidden=[32,32]")
+    actor, critic = make_token_actor_critic(cfg, F, 8)
+    loss = TRPOLoss(actor, critic)
+    loss.make_value_estimator(gamma=0.99, lmbda=0.95)
+    normalise = make_token_norm(F)
+    batch = collect(actor, normalise(robots([SNAKE, QUADRUPED], length=8, batch=20))).reshape(2, 10)
+    following = normalise(robots([SNAKE, QUADRUPED], length=8, batch=20)).reshape(2, 10)
+    batch["next"] = following.update({"reward": torch.randn(2, 10, 1), "done": torch.zeros(2, 10, 1, dtype=torch.bool),
+                                      "terminated": torch.zeros(2, 10, 1, dtype=torch.bool)})
+    loss.compute_advantage(batch)
+    with torch.no_grad():
+        own = critic(batch.exclude("state_value", "next").clone())["state_value"]
+        own_next = critic(following.exclude("state_value").clone())["state_value"]
+    torch.testing.assert_close(batch["state_value"], own)
+    torch.testing.assert_close(batch["next", "state_value"], own_next)
+    assert torch.isfinite(batch["advantage"]).all()
+
+
 def test_the_default_token_transformer_critic_and_each_choice_build_as_named():
     from unipolicy_rl.token_networks import PooledTokenCritic, _TransformerCriticNetwork
 

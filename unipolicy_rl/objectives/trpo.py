@@ -181,7 +181,14 @@ class TRPOLoss(LossModule):
         return ["loss_objective", "loss_critic", "kl", "entropy", "loss_entropy"]
 
     def make_value_estimator(self, value_type: ValueEstimators | None = None, **hyperparams):
-        """Build the advantage estimator (GAE, gamma 0.99, lambda 0.95 by default)."""
+        """Build the advantage estimator (GAE, gamma 0.99, lambda 0.95 by default).
+
+        The critic is called on the states and the next states in a loop of two rather than
+        under ``vmap`` (TorchRL's ``deactivate_vmap``, set unless given): a critic whose shapes
+        depend on its input, as the token transformer's that cuts the padding no robot of the
+        batch uses, cannot run under ``vmap``; two calls cost what the one batched call did.
+        """
+        hyperparams.setdefault("deactivate_vmap", True)
         value_type, hp = self._prepare_value_estimator_kwargs(value_type, **hyperparams)
         if value_type is None:  # an estimator instance or class was given and installed
             return self
