@@ -18,6 +18,10 @@ morphology rendered in PyBullet (at the mean design), titled with its side and e
 and its specialist's grid mean (``--no-pictures`` skips the renders). Every specialist's final
 evaluation comes first (and ``specialists.csv``), so a study whose universal runs have not
 finished still shows what it has measured: then the figure shows the specialists alone.
+
+``--matched-steps 40000,80000,140000`` answers another question from the periodic evaluations
+(unfinished runs included): each universal run against the specialists on every robot it trains
+on, at equal real env steps *per robot* (the universal run's steps over its number of robots).
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ import pybullet
 
 from unipolicy_rl.report.morphologies import (
     compare,
+    compare_at_matched_steps,
+    format_matched_steps,
     format_specialists,
     format_table,
     is_grammar_run,
@@ -138,17 +144,39 @@ def draw(panels: list[Panel], path: Path) -> None:
     plt.close(figure)
 
 
+def _step_list(text: str) -> list[int]:
+    try:
+        steps = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if any(step < 1 for step in steps):
+        raise argparse.ArgumentTypeError(f"steps per robot must be >= 1, got {text!r}")
+    return steps
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("roots", nargs="+", type=Path, help="folders holding specialist and universal grammar runs")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"where the CSV and figure go ({DEFAULT_OUT})")
     parser.add_argument("--no-pictures", action="store_true", help="skip the PyBullet renders")
+    parser.add_argument("--matched-steps", type=_step_list, metavar="N,N,...",
+                        help="instead: each universal run against the specialists at these real env steps per "
+                             "robot, from their periodic evaluations (unfinished runs too), e.g. 40000,80000,140000")
     args = parser.parse_args(argv)
     try:
         runs = [run for run in load_runs(args.roots, exclude=[args.out]) if is_grammar_run(run)]
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
+    if args.matched_steps:
+        rows = compare_at_matched_steps(runs, args.matched_steps)
+        table = format_matched_steps(rows)
+        if table.count("\n") < 2:
+            print("error: no universal run and specialist that both reached the first of those steps per robot",
+                  file=sys.stderr)
+            return 1
+        print(table)
+        return 0
     comparisons = compare(runs)
     specialists = specialist_scores(runs)
     if not comparisons and not specialists:

@@ -223,8 +223,9 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
         actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
         normalizer, statistics = make_observation_norm(observation_dim), ObservationStatistics(observation_dim)
         statistics_keys = ("observation",)
+    # (a config from before advantage_groups standardises over the whole batch, as it did)
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage, entropy_coeff=algo.entropy_coeff,
-                    advantage_groups=algo.advantage_groups)
+                    advantage_groups=algo.get("advantage_groups"))
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
     updater = TRPOUpdater(
         loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,

@@ -32,6 +32,7 @@ from omegaconf import OmegaConf
 from unipolicy_rl.report.runs import Run
 
 MORPHOLOGIES_CSV = Path("evaluation") / "morphologies.csv"
+PERIODIC_CSV = Path("evaluation") / "periodic_morphologies.csv"
 WALKS = 1.0  # m of grid mean displacement: a morphology the policy walks
 TRAINED, HELD_OUT, UNTRAINED = "trained", "held_out", "train side, not trained on"
 
@@ -135,11 +136,16 @@ def is_model_based(run: Run) -> bool:
     return (run.config.get("source") or {}).get("kind") == "model"
 
 
+SPECIALIST_POLICY = "token_mlp"  # issue 23's specialist: an MLP policy on the robot's own observation
+
+
 def is_specialist(run: Run) -> bool:
-    """The reference a morphology is measured against: SE-TRPO on that robot alone, on real data.
-    (A model-based run cut to one robot is an entry of its own, measured against it.)"""
+    """The reference a morphology is measured against: SE-TRPO with the padded MLP on that robot
+    alone, on real data. (A model-based run, or another policy, cut to one robot is an entry of
+    its own, measured against it: the universal transformer as one robot's specialist says what
+    the architecture costs without the sharing.)"""
     return (is_grammar_run(run) and run.config["robot"].get("specialist") is not None
-            and not is_model_based(run))
+            and not is_model_based(run) and run.config["policy"]["name"] == SPECIALIST_POLICY)
 
 
 def entry_name(run: Run) -> str:
@@ -186,6 +192,84 @@ def compare(runs: Iterable[Run], sides_of=split_sides) -> list[Comparison]:
                                           score.links, score.mean_displacement,
                                           statistics.median(found) if found else None))
     return comparisons
+
+
+@dataclass(frozen=True)
+class MatchedSteps:
+    """A universal run and the specialist of one robot it trained on, each at its first periodic
+    evaluation once that robot has had ``steps`` real env steps (the universal run's real steps
+    over the number of robots it trains on; its robots are drawn evenly on average)."""
+
+    run: str                  # the universal run (its folder under the report's roots)
+    derivation: str
+    steps: int
+    universal: float | None   # grid mean (m); None where the run has not got that far
+    specialist: float | None  # the specialists' median grid mean there; None where none got that far
+
+
+def periodic_curves(run: Run) -> dict[str, list[tuple[int, float]]]:
+    """The run's periodic evaluations per morphology: derivation -> [(real env steps, grid mean)]
+    in order; empty when the run has none."""
+    path = run.path / PERIODIC_CSV
+    curves: dict[str, list[tuple[int, float]]] = defaultdict(list)
+    if path.is_file():
+        with path.open(newline="") as file:
+            for row in csv.DictReader(file):
+                curves[row["derivation"]].append((int(float(row["real_env_steps"])),
+                                                  float(row["mean_forward_displacement"])))
+    return dict(curves)
+
+
+def _first_at(curve: Sequence[tuple[int, float]], steps: float) -> float | None:
+    return next((value for at, value in curve if at >= steps), None)
+
+
+def compare_at_matched_steps(runs: Iterable[Run], steps: Sequence[int], sides_of=split_sides) -> list[MatchedSteps]:
+    """Every universal run against the specialists on each robot it trained on, at equal real env
+    steps *per robot*: the final table compares a universal run with specialists that spent the
+    whole budget on one robot each; this says whether sharing one policy slows each robot's
+    learning, and from when."""
+    if not steps or any(not (isinstance(value, int) and value >= 1) for value in steps):
+        raise ValueError(f"steps must be positive integers (real env steps per robot), got {list(steps)!r}")
+    runs = [run for run in runs if is_grammar_run(run)]
+    specialists: dict[str, list[list[tuple[int, float]]]] = defaultdict(list)
+    for run in filter(is_specialist, runs):
+        for derivation, curve in periodic_curves(run).items():
+            specialists[derivation].append(curve)
+    rows = []
+    for run in runs:
+        if is_specialist(run):
+            continue
+        trained = [derivation for derivation, side in sides_of(run).items() if side == TRAINED]
+        curves = periodic_curves(run)
+        for derivation in trained:
+            for per_robot in steps:
+                found = [value for curve in specialists.get(derivation, [])
+                         if (value := _first_at(curve, per_robot)) is not None]
+                rows.append(MatchedSteps(run.name, derivation, per_robot,
+                                         _first_at(curves.get(derivation, []), per_robot * len(trained)),
+                                         statistics.median(found) if found else None))
+    return rows
+
+
+def format_matched_steps(rows: Sequence[MatchedSteps]) -> str:
+    """Per universal run and step count: universal and specialist grid means on each trained
+    robot, and their means over the robots where both got that far."""
+    lines = ["| universal run | real env steps per robot | universal, per robot (m) | specialist, per robot (m) | "
+             "universal mean | specialist mean |", "|---|---|---|---|---|---|"]
+    groups: dict[tuple[str, int], list[MatchedSteps]] = defaultdict(list)
+    for row in rows:
+        groups[(row.run, row.steps)].append(row)
+    for (run, steps), group in groups.items():
+        both = [row for row in group if row.universal is not None and row.specialist is not None]
+        if not both:
+            continue
+        universal = " ".join("-" if row.universal is None else f"{row.universal:.2f}" for row in group)
+        specialist = " ".join("-" if row.specialist is None else f"{row.specialist:.2f}" for row in group)
+        lines.append(f"| {run} | {steps:,} | {universal} | {specialist} | "
+                     f"{statistics.mean(row.universal for row in both):.2f} m | "
+                     f"{statistics.mean(row.specialist for row in both):.2f} m ({len(both)} robots) |")
+    return "\n".join(lines)
 
 
 def _median(values: Sequence[float]) -> float:
