@@ -191,3 +191,48 @@ def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_p
     assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out")]) == 0
     assert "the specialists only" in capsys.readouterr().out
     assert (tmp_path / "out" / "morphologies.png").stat().st_size > 0
+
+
+def write_periodic(path: Path, rows: list[tuple[int, str, float]]) -> None:
+    """The run's periodic evaluations: (real env steps, derivation, grid mean) per row."""
+    with (path / table.PERIODIC_CSV).open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=["epoch", "real_env_steps", "morphology",
+                                                  "mean_forward_displacement", "derivation"])
+        writer.writeheader()
+        for steps, derivation, mean in rows:
+            writer.writerow({"epoch": steps // 1000, "real_env_steps": steps, "morphology": 0,
+                             "mean_forward_displacement": mean, "derivation": derivation})
+
+
+def test_matched_steps_compare_each_robot_at_equal_real_steps_per_robot(tmp_path):
+    """A universal run over 2 robots at 40,000 real steps has given each robot 20,000: it is read
+    there against the specialists' first evaluation at or after 20,000 of their own."""
+    spec_a = write_run(tmp_path, "spec_a", "token_mlp", {}, specialist=0)
+    write_periodic(spec_a, [(10000, "a", 0.1), (20000, "a", 0.5), (40000, "a", 2.0)])
+    spec_b = write_run(tmp_path, "spec_b", "token_mlp", {}, specialist=1)
+    write_periodic(spec_b, [(20000, "b", 0.3)])
+    # The transformer as one robot's specialist is not a reference: an entry of its own.
+    other = write_run(tmp_path, "spec_a_transformer", "token_transformer", {}, specialist=0)
+    write_periodic(other, [(20000, "a", 9.0)])
+    universal = write_run(tmp_path, "universal", "token_transformer", {}, training_morphologies=2)
+    write_periodic(universal, [(steps, name, value) for steps, values in ((20000, (0.2, 0.1)), (40000, (1.0, 0.4)),
+                                                                          (80000, (1.5, 0.6)))
+                               for name, value in zip("ab", values, strict=True)])
+    runs = [load_run(path, path.name) for path in (spec_a, spec_b, other, universal)]
+    assert [table.is_specialist(run) for run in runs] == [True, True, False, False]
+    def sides_of(run):  # a run cut to one robot trained on that robot alone (split_sides)
+        return {"a": table.TRAINED} if run.name == "spec_a_transformer" else SIDES
+
+    rows = table.compare_at_matched_steps(runs, [20000, 40000], sides_of=sides_of)
+    found = {(row.run, row.derivation, row.steps): (row.universal, row.specialist) for row in rows}
+    assert found["universal", "a", 20000] == (1.0, 0.5)
+    assert found["universal", "b", 20000] == (0.4, 0.3)
+    assert found["universal", "a", 40000] == (1.5, 2.0)
+    assert found["universal", "b", 40000] == (0.6, None)  # its specialist stopped at 20,000
+    # The transformer cut to robot a (trained: a only) reads its own steps.
+    assert found["spec_a_transformer", "a", 20000] == (9.0, 0.5)
+    text = table.format_matched_steps(rows)
+    assert "| universal | 20,000 | 1.00 0.40 | 0.50 0.30 | 0.70 m | 0.40 m (2 robots) |" in text
+    assert "| universal | 40,000 | 1.50 0.60 | 2.00 - | 1.50 m | 2.00 m (1 robots) |" in text
+    with pytest.raises(ValueError, match=r"steps must be positive integers \(real env steps per robot\), got \[0\]"):
+        table.compare_at_matched_steps(runs, [0], sides_of=lambda run: SIDES)
