@@ -145,13 +145,11 @@ def draw(panels: list[Panel], path: Path) -> None:
 
 
 def _step_list(text: str) -> list[int]:
+    """Comma-separated integers (their range is compare_at_matched_steps' to check)."""
     try:
-        steps = [int(part) for part in text.split(",")]
+        return [int(part) for part in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if any(step < 1 for step in steps):
-        raise argparse.ArgumentTypeError(f"steps per robot must be >= 1, got {text!r}")
-    return steps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,7 +167,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 1
     if args.matched_steps:
-        rows = compare_at_matched_steps(runs, args.matched_steps)
+        try:
+            rows = compare_at_matched_steps(runs, args.matched_steps)
+        except ValueError as error:
+            print(f"error: --matched-steps: {error}", file=sys.stderr)
+            return 1
         table = format_matched_steps(rows)
         if table.count("\n") < 2:
             print("error: no universal run and specialist that both reached the first of those steps per robot",

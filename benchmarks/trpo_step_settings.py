@@ -49,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="cg_iters:damping pairs, the first the reference (10:0.1 30:0.1 10:0.01)")
     parser.add_argument("--batches", type=int, default=3, help="real batches to step on (3)")
     args = parser.parse_args(argv)
+    if args.batches < 1:  # (else the collector's loop below would never stop)
+        parser.error(f"--batches must be >= 1, got {args.batches}")
     torch.set_num_threads(1)
     state = load_checkpoint(args.checkpoint)
     cfg = OmegaConf.create(state["config"])

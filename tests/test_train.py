@@ -558,3 +558,5 @@ def test_the_trpo_step_settings_benchmark_steps_a_run_s_own_batch_under_each_set
     assert len(lines) == 2 and "(1.00x)" in lines[0] and "cg_iters   2 damping 0.1" in lines[1]
     with pytest.raises(SystemExit):
         benchmark.main([str(tmp_path / "checkpoint.pt"), "--settings", "ten:0.1"])
+    with pytest.raises(SystemExit):
+        benchmark.main([str(tmp_path / "checkpoint.pt"), "--batches", "0"])
