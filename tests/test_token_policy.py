@@ -128,6 +128,41 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
                                    atol=1e-5, rtol=1e-5)
 
 
+def test_slot_vectors_let_a_body_move_one_slot_alone_and_padding_still_changes_nothing():
+    settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, slot_embedding=True)
+    actor = make_token_transformer_actor(F, settings, init_log_std=-0.5, max_tokens=12)
+    encoder = actor.module[0].module.encoder
+    assert torch.equal(encoder.slot_embedding, torch.zeros(12, 16))  # starts as the network without slot vectors
+    with torch.no_grad():
+        for param in actor.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+    data = collect(actor, robots([SNAKE, QUADRUPED], length=7, batch=6))
+
+    with torch.no_grad():
+        loc = actor.get_dist_params(data.clone())["loc"]
+        bigger = padded(data, 12)
+        big_params = actor.get_dist_params(bigger.clone())
+        real = data[ACTION_MASK]
+        torch.testing.assert_close(big_params["loc"][..., :7][real], loc[real], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(actor.get_dist(big_params).log_prob(bigger["action"]),
+                                   actor.get_dist(actor.get_dist_params(data.clone())).log_prob(data["action"]),
+                                   atol=1e-5, rtol=1e-5)
+        # Two tokens of the same features act alike without slot vectors, and apart with them.
+        twins = data[:1].clone()
+        twins[TOKENS][0, 2] = twins[TOKENS][0, 1]
+        twins[TOKEN_PARENT][0, 2] = twins[TOKEN_PARENT][0, 1] = 0  # both children of the root
+        twin_loc = actor.get_dist_params(twins.clone())["loc"][0]
+        assert (twin_loc[1] - twin_loc[2]).abs() > 1e-3
+        encoder.slot_embedding.zero_()
+        twin_loc = actor.get_dist_params(twins.clone())["loc"][0]
+        torch.testing.assert_close(twin_loc[1], twin_loc[2], atol=1e-6, rtol=1e-6)
+
+    with pytest.raises(ValueError, match="12 slots.*13 slots"):
+        actor(padded(data, 13))
+    with pytest.raises(ValueError, match="max_tokens"):
+        make_token_transformer_actor(F, settings)
+
+
 @pytest.mark.parametrize("graph_attention", [False, True])
 def test_the_encoder_cuts_trailing_padding_and_its_real_outputs_stay_exact(graph_attention):
     settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, graph_attention=graph_attention)
@@ -275,10 +310,13 @@ def test_graph_attention_sees_only_parent_children_and_itself():
 
 
 # ------------------------------------------------------------------------- TRPO on tokens
-@pytest.mark.parametrize("architecture", ["token_transformer", "token_mlp"])
+@pytest.mark.parametrize("architecture", ["token_transformer", "token_transformer_slots", "token_mlp"])
 def test_trpo_step_on_token_data_respects_the_kl_bound(architecture):
     if architecture == "token_transformer":
         actor, critic = transformer()
+    elif architecture == "token_transformer_slots":  # the slot vectors in the step (zero at first, moved by it)
+        settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, slot_embedding=True)
+        actor, critic = make_token_transformer_actor(F, settings, -0.5, max_tokens=8), make_pooled_token_critic(F, (16,))
     else:
         actor, critic = make_padded_mlp_actor(F, 8, (32,), init_log_std=-0.5), make_padded_mlp_critic(F, 8, (32,))
     loss = TRPOLoss(actor, critic)
@@ -297,6 +335,8 @@ def test_trpo_step_on_token_data_respects_the_kl_bound(architecture):
     assert before["loss_objective"] - after["loss_objective"] > 0
     predicted_kl = max_kl * 0.8 ** (2 * (result.line_search_tries - 1))  # the Fisher model sized the step
     assert 0.4 * predicted_kl < result.kl <= 1.5 * predicted_kl
+    if architecture == "token_transformer_slots":
+        assert actor.module[0].module.encoder.slot_embedding.abs().max() > 0
 
 
 # Recorded on main (torch 2.13 CPU, one thread, AVX-512; the step was first recorded as bits before
@@ -560,7 +600,9 @@ def test_policy_group_composes_and_builds_each_architecture():
         make_actor_critic(policy_config("token_transformer"), 18, 4)
 
     data = robots([SNAKE, QUADRUPED], length=7, batch=4)
-    for name, overrides in [("token_transformer", ["policy.network.graph_attention=true"]), ("token_mlp", [])]:
+    for name, overrides in [("token_transformer", ["policy.network.graph_attention=true"]),
+                            ("token_transformer", ["policy.network.slot_embedding=true", "policy.critic=transformer"]),
+                            ("token_mlp", [])]:
         cfg = policy_config(name, *overrides)
         actor, critic = make_token_actor_critic(cfg, F, 7)
         with torch.no_grad():
@@ -577,7 +619,7 @@ def test_policy_group_composes_and_builds_each_architecture():
 
 @pytest.mark.parametrize(("setting", "value"), [
     ("d_model", 30), ("heads", 0), ("layers", 0), ("feedforward", -1), ("activation", "tanh"),
-    ("graph_attention", "yes"), ("layers", 2.5),
+    ("graph_attention", "yes"), ("layers", 2.5), ("slot_embedding", 1),
 ])
 def test_bad_transformer_settings_raise_naming_the_value(setting, value):
     settings = {"d_model": 32, "heads": 4}

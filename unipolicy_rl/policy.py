@@ -150,7 +150,7 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
     token_critic(cfg)  # a bad critic name fails before any network is built
     if architecture == "token_transformer":
         actor = make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,
-                                             tokens_key=NORMALIZED_TOKENS)
+                                             max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
     else:
         actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
                                       algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
@@ -164,7 +164,7 @@ def make_token_critic(cfg: DictConfig, token_features: int, max_tokens: int) -> 
     kind, algo = token_critic(cfg), cfg.algo
     if kind == "transformer":
         return make_token_transformer_critic(token_features, instantiate(_critic_transformer_settings(cfg)),
-                                             tokens_key=NORMALIZED_TOKENS)
+                                             max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
     if kind == "pooled":
         return make_pooled_token_critic(token_features, tuple(algo.critic_hidden), algo.activation,
                                         tokens_key=NORMALIZED_TOKENS)

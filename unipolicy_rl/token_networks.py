@@ -79,6 +79,12 @@ class TokenTransformerSettings:
         activation: the feed-forward block's non-linearity (``relu`` or ``gelu``).
         graph_attention: restrict attention to a token's parent, children and itself (Body
             Transformer); False attends to every real token (MetaMorph).
+        slot_embedding: add a learnt vector per slot to each token's embedding (MetaMorph's
+            position embedding over the link order). Without it the one shared action head can
+            tell two joints apart only by their features, and mirrored legs of one body differ in
+            little but the sign of a position; with it each slot can act on its own, as the
+            padded MLP's per-slot outputs do. It ties the weights to the padding length
+            (``max_tokens``), as MetaMorph's does; False keeps them free of it.
     """
 
     d_model: int = 64
@@ -87,6 +93,7 @@ class TokenTransformerSettings:
     feedforward: int = 128
     activation: str = "relu"
     graph_attention: bool = False
+    slot_embedding: bool = False
 
     def __post_init__(self) -> None:
         for name in ("d_model", "heads", "layers", "feedforward"):
@@ -97,8 +104,9 @@ class TokenTransformerSettings:
             raise ValueError(f"d_model={self.d_model} must be divisible by heads={self.heads}")
         if self.activation not in TRANSFORMER_ACTIVATIONS:
             raise ValueError(f"activation must be one of {TRANSFORMER_ACTIVATIONS}, got {self.activation!r}")
-        if not isinstance(self.graph_attention, bool):
-            raise ValueError(f"graph_attention must be true or false, got {self.graph_attention!r}")
+        for name in ("graph_attention", "slot_embedding"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
 
 
 def attention_blocked(token_mask: torch.Tensor, token_parent: torch.Tensor, graph: bool) -> torch.Tensor:
@@ -125,14 +133,23 @@ def used_slots(token_mask: torch.Tensor) -> int:
 
 
 class TokenEncoder(nn.Module):
-    """``(tokens [*, L, F], mask, parent) -> [*, L, d_model]``: embedding, then self-attention layers."""
+    """``(tokens [*, L, F], mask, parent) -> [*, L, d_model]``: embedding (plus a learnt vector per
+    slot with ``settings.slot_embedding``, for up to ``max_tokens`` slots), then self-attention layers."""
 
-    def __init__(self, token_features: int, settings: TokenTransformerSettings) -> None:
+    def __init__(self, token_features: int, settings: TokenTransformerSettings, max_tokens: int | None = None) -> None:
         super().__init__()
         if not (isinstance(token_features, int) and token_features >= 1):
             raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
         self.settings = settings
         self.embedding = nn.Linear(token_features, settings.d_model)
+        self.slot_embedding = None
+        if settings.slot_embedding:
+            if not (isinstance(max_tokens, int) and max_tokens >= 1):
+                raise ValueError(f"slot_embedding needs the padding length max_tokens (a positive integer), "
+                                 f"got {max_tokens!r}")
+            # Zeros: the network starts as the one without slot vectors; each slot's vector then
+            # learns from the gradient at its slot alone.
+            self.slot_embedding = nn.Parameter(torch.zeros(max_tokens, settings.d_model))
         layer = nn.TransformerEncoderLayer(settings.d_model, settings.heads, settings.feedforward, dropout=0.0,
                                            activation=settings.activation, batch_first=True, norm_first=True)
         # Dropout 0: TRPO's ratio, KL and line search need one deterministic policy.
@@ -148,12 +165,17 @@ class TokenEncoder(nn.Module):
         unchanged. A padding slot's output is never read (the actions' mask, the critics' pooling).
         """
         batch_shape, (length, features) = tokens.shape[:-2], tokens.shape[-2:]
+        if self.slot_embedding is not None and length > len(self.slot_embedding):
+            raise ValueError(f"the slot embedding has {len(self.slot_embedding)} slots (max_tokens), "
+                             f"got tokens of {length} slots")
         flat_mask = token_mask.reshape(-1, length)
         used = used_slots(flat_mask)
         flat_mask, flat_parent = flat_mask[:, :used], token_parent.reshape(-1, length)[:, :used]
         blocked = attention_blocked(flat_mask, flat_parent, self.settings.graph_attention)
         blocked = blocked.repeat_interleave(self.settings.heads, dim=0)  # [B * heads, L, L], as the encoder wants
         embedded = self.embedding(tokens.reshape(-1, length, features)[:, :used])
+        if self.slot_embedding is not None:
+            embedded = embedded + self.slot_embedding[:used]
         # The math kernel: TRPO's Fisher-vector product differentiates the network's backward
         # pass, and the fused CPU attention kernel has no double backward.
         with sdpa_kernel(SDPBackend.MATH):
@@ -183,9 +205,10 @@ class SharedLogStd(nn.Module):
 class _TransformerActorNetwork(nn.Module):
     """Tokens -> per-slot ``loc`` (one shared linear head on every token) and the shared std."""
 
-    def __init__(self, token_features: int, settings: TokenTransformerSettings, init_log_std: float) -> None:
+    def __init__(self, token_features: int, settings: TokenTransformerSettings, init_log_std: float,
+                 max_tokens: int | None) -> None:
         super().__init__()
-        self.encoder = TokenEncoder(token_features, settings)
+        self.encoder = TokenEncoder(token_features, settings, max_tokens)
         self.action_head = _orthogonal_linear(settings.d_model, 1, gain=0.01)  # start near a zero mean
         self.std = SharedLogStd(init_log_std)
 
@@ -210,9 +233,9 @@ def _masked_max(values: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
 class _TransformerCriticNetwork(nn.Module):
     """Tokens -> state value: the mean of the encoded real tokens, then a linear head."""
 
-    def __init__(self, token_features: int, settings: TokenTransformerSettings) -> None:
+    def __init__(self, token_features: int, settings: TokenTransformerSettings, max_tokens: int | None) -> None:
         super().__init__()
-        self.encoder = TokenEncoder(token_features, settings)
+        self.encoder = TokenEncoder(token_features, settings, max_tokens)
         self.value_head = _orthogonal_linear(settings.d_model, 1, gain=1.0)
 
     def forward(self, tokens, token_mask, token_parent):
@@ -323,19 +346,21 @@ def _gaussian_actor(network: nn.Module, in_keys: list[str], action_spec: TensorS
 
 
 def make_token_transformer_actor(token_features: int, settings: TokenTransformerSettings | None = None,
-                                 init_log_std: float = 0.0, *, tokens_key: str = TOKENS,
+                                 init_log_std: float = 0.0, *, max_tokens: int | None = None, tokens_key: str = TOKENS,
                                  action_spec: TensorSpec | None = None) -> ProbabilisticActor:
     """The token transformer's Gaussian policy, reading ``tokens_key`` (normalised tokens), the
-    token mask and parents, and the action mask."""
-    network = _TransformerActorNetwork(token_features, settings or TokenTransformerSettings(), init_log_std)
+    token mask and parents, and the action mask; ``max_tokens`` sizes the slot embedding (needed
+    only with ``settings.slot_embedding``)."""
+    network = _TransformerActorNetwork(token_features, settings or TokenTransformerSettings(), init_log_std,
+                                       max_tokens)
     return _gaussian_actor(network, [tokens_key, TOKEN_MASK, TOKEN_PARENT], action_spec)
 
 
 def make_token_transformer_critic(token_features: int, settings: TokenTransformerSettings | None = None, *,
-                                  tokens_key: str = TOKENS) -> ValueOperator:
+                                  max_tokens: int | None = None, tokens_key: str = TOKENS) -> ValueOperator:
     """State value from the mean of the encoded real tokens (its own encoder: the critic's Adam
     must not move the policy TRPO just bounded)."""
-    network = _TransformerCriticNetwork(token_features, settings or TokenTransformerSettings())
+    network = _TransformerCriticNetwork(token_features, settings or TokenTransformerSettings(), max_tokens)
     return ValueOperator(network, in_keys=[tokens_key, TOKEN_MASK, TOKEN_PARENT])
 
 
