@@ -11,8 +11,9 @@ distribution and critic output):
   self-attention layers in which no real token sees padding, one shared action head applied to
   every token. With ``graph_attention`` each token attends only to itself, its parent and its
   children (the Body Transformer's masked attention), so information travels one link per layer.
-  Its weights do not depend on ``L``: the same network runs any robot, and padding a robot with
-  empty tokens leaves its real slots' outputs unchanged;
+  Its weights do not depend on ``L`` (unless ``slot_embedding`` adds a learnt vector per slot):
+  the same network runs any robot, and padding a robot with empty tokens leaves its real slots'
+  outputs unchanged;
 * the padded MLP (the baseline): the normalised tokens flattened in slot order (padding zero)
   with the token mask beside them, through an MLP to ``[L]`` means; its weights are tied to ``L``.
 
