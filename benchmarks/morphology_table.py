@@ -88,29 +88,13 @@ class Panel(NamedTuple):
     lines: tuple[str, ...]
 
 
-def comparison_panels(comparisons) -> list[Panel]:
-    """A panel per morphology: its side and size, its specialist's grid mean and every entry's."""
-    by_morphology: dict[str, list] = {}
-    for row in comparisons:
-        by_morphology.setdefault(row.derivation, []).append(row)
-    panels = []
-    for derivation, entries in by_morphology.items():
-        specialist = entries[0].specialist
-        lines = [f"{entries[0].side}, {entries[0].links} links",
-                 "specialist " + ("-" if specialist is None else f"{specialist:.2f} m")]
-        lines += [f"{row.entry.split(',')[0]} x{row.entry.split(',')[1].split()[0]}: {row.universal:.2f} m"
-                  for row in entries]
-        panels.append(Panel(derivation, entries[0].side, entries[0].links, tuple(lines)))
-    return panels
-
-
-def specialist_panels(specialists) -> list[Panel]:
-    """A panel per specialist's morphology, before any universal run has finished: its side, index
-    and size, and the median over its seeds of the grid mean and the worst design."""
+def specialist_panels(specialists) -> dict[str, Panel]:
+    """A panel per specialist's morphology: its side, index and size, and the median over its
+    seeds of the grid mean and the worst design."""
     by_morphology: dict[str, list] = {}
     for score in specialists:
         by_morphology.setdefault(score.derivation, []).append(score)
-    panels = []
+    panels = {}
     for derivation, scores in by_morphology.items():
         first = scores[0]
         mean = float(np.median([score.mean_displacement for score in scores]))
@@ -118,8 +102,24 @@ def specialist_panels(specialists) -> list[Panel]:
         seeds = "" if len(scores) == 1 else f" ({len(scores)} seeds)"
         lines = (f"{first.side} {first.index}, {first.links} links",
                  f"specialist {mean:.2f} m{seeds}", f"worst design {worst:.2f} m")
-        panels.append(Panel(derivation, first.side, first.links, lines))
+        panels[derivation] = Panel(derivation, first.side, first.links, lines)
     return panels
+
+
+def figure_panels(specialists, comparisons) -> list[Panel]:
+    """Every specialist's morphology, then every other morphology an entry was evaluated on, each
+    with every entry's grid mean on it: an entry cut to one robot adds a line to that robot's
+    panel, it does not replace the others."""
+    panels = specialist_panels(specialists)
+    for row in comparisons:
+        entry = f"{row.entry.split(',')[0]} x{row.entry.split(',')[1].split()[0]}: {row.universal:.2f} m"
+        panel = panels.get(row.derivation)
+        if panel is None:
+            head = (f"{row.side}, {row.links} links",
+                    "specialist " + ("-" if row.specialist is None else f"{row.specialist:.2f} m"))
+            panel = Panel(row.derivation, row.side, row.links, head)
+        panels[row.derivation] = panel._replace(lines=(*panel.lines, entry))
+    return list(panels.values())
 
 
 def draw(panels: list[Panel], path: Path) -> None:
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     if not comparisons:
         print("no universal run has a final evaluation yet: the specialists only")
         if not args.no_pictures:
-            draw(specialist_panels(specialists), args.out / "morphologies.png")
+            draw(figure_panels(specialists, []), args.out / "morphologies.png")
             print(f"wrote {args.out / 'morphologies.png'}")
         return 0
     print(format_table(comparisons, summarize(comparisons)))
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         writer.writeheader()
         writer.writerows({**asdict(row), "ratio": row.ratio} for row in comparisons)
     if not args.no_pictures:
-        draw(comparison_panels(comparisons), args.out / "morphologies.png")
+        draw(figure_panels(specialists, comparisons), args.out / "morphologies.png")
         print(f"wrote {args.out / 'morphologies.png'}")
     return 0
 

@@ -104,9 +104,12 @@ def transformer(settings=SMALL, dtype=torch.float32):
 
 
 # ------------------------------------------------------------------- padding changes nothing
-@pytest.mark.parametrize("graph_attention", [False, True])
-def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_attention):
-    settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, graph_attention=graph_attention)
+@pytest.mark.parametrize(("graph_attention", "head"), [
+    (False, {}), (True, {}), (False, {"head_hidden": (16, 16), "head_reads_token": True}),
+])
+def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_attention, head):
+    settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, graph_attention=graph_attention,
+                                        **head)
     actor, critic = transformer(settings)
     with torch.no_grad():  # a policy away from its near-zero initial mean
         for param in actor.parameters():
@@ -554,11 +557,13 @@ def test_token_statistics_and_normaliser_ignore_padding():
         statistics.update(data[TOKENS], data[TOKEN_MASK].float())
 
 
-@pytest.mark.parametrize(("architecture", "critic"), [
-    ("token_transformer", "transformer"), ("token_transformer", "pooled"), ("token_mlp", "padded_mlp"),
+@pytest.mark.parametrize(("architecture", "critic", "overrides"), [
+    ("token_transformer", "transformer", []), ("token_transformer", "pooled", []), ("token_mlp", "padded_mlp", []),
+    ("token_transformer", "pooled", ["policy.network.head_hidden=[8]", "policy.network.head_reads_token=true"]),
+    ("token_transformer", "pooled", ["policy.network.head_reads_token=true"]),
 ])
-def test_a_preserving_refresh_leaves_token_networks_unchanged(architecture, critic):
-    cfg = policy_config(architecture, f"policy.critic={critic}")
+def test_a_preserving_refresh_leaves_token_networks_unchanged(architecture, critic, overrides):
+    cfg = policy_config(architecture, f"policy.critic={critic}", *overrides)
     actor, critic = make_token_actor_critic(cfg, F, 7)
     normalizer = make_token_norm(F)
     with torch.no_grad():
@@ -619,7 +624,8 @@ def test_policy_group_composes_and_builds_each_architecture():
 
 @pytest.mark.parametrize(("setting", "value"), [
     ("d_model", 30), ("heads", 0), ("layers", 0), ("feedforward", -1), ("activation", "tanh"),
-    ("graph_attention", "yes"), ("layers", 2.5), ("slot_embedding", 1),
+    ("graph_attention", "yes"), ("layers", 2.5), ("slot_embedding", 1), ("head_hidden", [0]),
+    ("head_reads_token", "no"),
 ])
 def test_bad_transformer_settings_raise_naming_the_value(setting, value):
     settings = {"d_model": 32, "heads": 4}

@@ -47,7 +47,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
 from unipolicy_rl.masked_normal import MaskedIndependentNormal
 from unipolicy_rl.networks import ACTIVATIONS, _orthogonal_linear, make_mlp
-from unipolicy_rl.observation_statistics import reexpress_linear
+from unipolicy_rl.observation_statistics import reexpress_linear, reexpress_weights
 
 __all__ = [
     "TRANSFORMER_ACTIVATIONS",
@@ -86,6 +86,12 @@ class TokenTransformerSettings:
             little but the sign of a position; with it each slot can act on its own, as the
             padded MLP's per-slot outputs do. It ties the weights to the padding length
             (``max_tokens``), as MetaMorph's does; False keeps them free of it.
+        head_hidden: hidden widths of the per-token action head (tanh between them, as the
+            padded MLP's); empty: one linear map from a token's encoding to its action mean.
+        head_reads_token: the action head reads the token's own normalised features beside its
+            encoding. The encoding has passed LayerNorms and attention, so a joint's own angle
+            and rate reach its action only through them; the skip gives each joint the direct,
+            local path an MLP has, with attention left to add what other links know.
     """
 
     d_model: int = 64
@@ -95,8 +101,15 @@ class TokenTransformerSettings:
     activation: str = "relu"
     graph_attention: bool = False
     slot_embedding: bool = False
+    head_hidden: tuple[int, ...] = ()
+    head_reads_token: bool = False
 
     def __post_init__(self) -> None:
+        # Hydra hands a list; a tuple keeps the settings hashable and comparable.
+        object.__setattr__(self, "head_hidden", tuple(self.head_hidden))
+        for width in self.head_hidden:
+            if not (isinstance(width, int) and not isinstance(width, bool) and width >= 1):
+                raise ValueError(f"head_hidden must hold positive integers, got {list(self.head_hidden)!r}")
         for name in ("d_model", "heads", "layers", "feedforward"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -105,7 +118,7 @@ class TokenTransformerSettings:
             raise ValueError(f"d_model={self.d_model} must be divisible by heads={self.heads}")
         if self.activation not in TRANSFORMER_ACTIVATIONS:
             raise ValueError(f"activation must be one of {TRANSFORMER_ACTIVATIONS}, got {self.activation!r}")
-        for name in ("graph_attention", "slot_embedding"):
+        for name in ("graph_attention", "slot_embedding", "head_reads_token"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
 
@@ -204,17 +217,35 @@ class SharedLogStd(nn.Module):
 
 
 class _TransformerActorNetwork(nn.Module):
-    """Tokens -> per-slot ``loc`` (one shared linear head on every token) and the shared std."""
+    """Tokens -> per-slot ``loc`` (one action head shared by every token: a linear map or a small
+    tanh MLP, on the token's encoding and, with ``head_reads_token``, its own features) and the
+    shared std."""
 
     def __init__(self, token_features: int, settings: TokenTransformerSettings, init_log_std: float,
                  max_tokens: int | None) -> None:
         super().__init__()
         self.encoder = TokenEncoder(token_features, settings, max_tokens)
-        self.action_head = _orthogonal_linear(settings.d_model, 1, gain=0.01)  # start near a zero mean
+        self.reads_token = settings.head_reads_token
+        head_inputs = settings.d_model + (token_features if self.reads_token else 0)
+        # The token's features come first, so a normaliser refresh re-expresses the leading columns.
+        head = make_mlp(head_inputs, 1, settings.head_hidden, "tanh", output_gain=0.01)  # loc starts near 0
+        # A lone linear head stays a bare nn.Linear: the checkpoints written before heads had
+        # hidden layers keep their parameter names.
+        self.action_head = head[0] if len(head) == 1 else head
         self.std = SharedLogStd(init_log_std)
 
     def forward(self, tokens, token_mask, token_parent):
-        return self.std(self.action_head(self.encoder(tokens, token_mask, token_parent)).squeeze(-1))
+        encoded = self.encoder(tokens, token_mask, token_parent)
+        head_input = torch.cat([tokens, encoded], -1) if self.reads_token else encoded
+        return self.std(self.action_head(head_input).squeeze(-1))
+
+    def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
+        """The embedding and, where the head reads the token, the head's token columns, for a
+        moved normaliser: every real slot's action mean stays the same."""
+        self.encoder.reexpress_input(old_loc, old_scale, new_loc, new_scale)
+        if self.reads_token:
+            first = self.action_head if isinstance(self.action_head, nn.Linear) else self.action_head[0]
+            reexpress_weights(first.weight, first.bias, old_loc, old_scale, new_loc, new_scale)
 
 
 def _masked_mean(values: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
