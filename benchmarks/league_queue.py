@@ -27,6 +27,10 @@ folders with it, resumes from the committed archive on the next machine.
 ``--stop-after MINUTES`` stops the queue that long after it started, as SIGTERM would (runs end at
 their epoch's end with a checkpoint, and are archived): on a machine lent for a fixed time, the
 records are final before it goes.
+``--stop-at-level {a,b,c}`` stops each run once its periodic evaluations have reached that league
+level (:data:`unipolicy_rl.report.league.LEVELS`) and ``--stop-from-steps`` real env steps (e.g.
+50,000, the first milestone of the league's (d)), and starts no run that already has: a study of
+steps to a level spends no core-hours past it, and a wall-time comparison ends where its measure does.
 """
 
 from __future__ import annotations
@@ -44,12 +48,14 @@ from pathlib import Path
 import torch
 import yaml
 
-from unipolicy_rl.report.runs import ReportError, archive_run, restore_run
+from unipolicy_rl.report.league import LEVELS, evaluations
+from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
 FINAL_EVALUATION = Path("evaluation") / "designs.csv"  # train.py's grid evaluation after the last epoch
 FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
+LEVEL_CHECK_SECONDS = 30.0  # how often a running run's metrics are read for --stop-at-level
 
 
 @dataclass(frozen=True)
@@ -71,6 +77,16 @@ class Run:
         if not checkpoint.is_file():
             return 0
         return int(torch.load(checkpoint, map_location="cpu", weights_only=False)["epoch"])
+
+    def reached(self, level: str, from_steps: float = 0.0) -> float | None:
+        """The real env steps at which the run first reached league level ``level`` (``a``, ``b``
+        or ``c``), once its evaluations have got to ``from_steps`` real steps; None before."""
+        if not (self.folder / "metrics.csv").is_file():
+            return None
+        found = {item.label.strip("()"): item for item in LEVELS}[level].find
+        done = evaluations(load_run(self.folder, f"{self.entry}/seed{self.seed}"))
+        at = found(done)
+        return at.steps if at is not None and done[-1].steps >= from_steps else None
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -110,12 +126,16 @@ class Queue:
     """At most ``jobs`` runs at once; a stop request is passed on to the running ones."""
 
     def __init__(self, code: Path, commit: str, jobs: int, nice: int, archive: Path | None = None,
-                 archive_every: float = 600.0, stop_after: float | None = None, checkpoint_limit: int = 0) -> None:
+                 archive_every: float = 600.0, stop_after: float | None = None, checkpoint_limit: int = 0,
+                 stop_at_level: tuple[str, float] | None = None) -> None:
         self.code, self.commit, self.jobs, self.nice = code, commit, jobs, nice
+        self.stop_at_level = stop_at_level  # (level, from real env steps): each run stops once there
+        self.level_checked_at = time.monotonic()
         self.checkpoint_limit = checkpoint_limit  # bytes; 0: checkpoints are not archived
         self.stop_at = None if stop_after is None else time.monotonic() + stop_after
         self.archive, self.archive_every, self.archived_at = archive, archive_every, time.monotonic()
         self.running: dict[subprocess.Popen, Run] = {}
+        self.stopped_at_level: set[subprocess.Popen] = set()
         self.stopping = False
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, self._stop)
@@ -157,6 +177,15 @@ class Queue:
                 print(f"{stamp} {run.entry} seed {run.seed} exited with {code} (log: {run.folder / 'train.log'})",
                       flush=True)
                 self._archive(run)
+        if self.stop_at_level and time.monotonic() - self.level_checked_at >= LEVEL_CHECK_SECONDS:
+            self.level_checked_at = time.monotonic()
+            for process, run in self.running.items():
+                steps = None if process in self.stopped_at_level else run.reached(*self.stop_at_level)
+                if steps is not None:
+                    print(f"{run.entry} seed {run.seed}: level ({self.stop_at_level[0]}) reached at {steps:,.0f} "
+                          f"real env steps; stopping it at its epoch's end", flush=True)
+                    process.send_signal(signal.SIGTERM)
+                    self.stopped_at_level.add(process)
         if self.running and time.monotonic() - self.archived_at >= self.archive_every:
             self.archived_at = time.monotonic()
             for run in self.running.values():
@@ -206,6 +235,11 @@ def main(argv: list[str] | None = None) -> int:
                              "archive (0: off); needs --archive")
     parser.add_argument("--stop-after", type=float, default=None,
                         help="minutes after which the queue stops its runs (at their epoch's end) and starts no more")
+    parser.add_argument("--stop-at-level", choices=[item.label.strip("()") for item in LEVELS], default=None,
+                        help="stop each run once it has reached this league level, and start none that has")
+    parser.add_argument("--stop-from-steps", type=float, default=0.0,
+                        help="with --stop-at-level: not before the run's evaluations reach this many real env "
+                             "steps (0)")
     parser.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     args = parser.parse_args(argv)
     if args.jobs < 1:
@@ -216,6 +250,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--carry-checkpoints needs --archive (where the checkpoints are carried)")
     if args.stop_after is not None and not args.stop_after >= 0:
         parser.error(f"--stop-after must be >= 0 minutes, got {args.stop_after}")
+    if not args.stop_from_steps >= 0:
+        parser.error(f"--stop-from-steps must be >= 0 real env steps, got {args.stop_from_steps}")
+    if args.stop_from_steps and args.stop_at_level is None:
+        parser.error("--stop-from-steps needs --stop-at-level (the level a run stops at)")
 
     code = args.code.resolve()
     if not (code / "train.py").is_file():
@@ -224,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = plan_runs(yaml.safe_load(args.plan.read_text()), args.entries.split(","), args.seeds, args.runs)
     archive = args.archive.resolve() if args.archive is not None else None
     queue = Queue(code, commit, args.jobs, args.nice, archive, args.archive_every,
-                  None if args.stop_after is None else 60 * args.stop_after, int(args.carry_checkpoints * 2**20))
+                  None if args.stop_after is None else 60 * args.stop_after, int(args.carry_checkpoints * 2**20),
+                  None if args.stop_at_level is None else (args.stop_at_level, args.stop_from_steps))
     print(f"queue: {len(runs)} run(s) of commit {commit} from {code}, {args.jobs} at a time", flush=True)
     for run in runs:
         if queue.stopping:
@@ -232,6 +271,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.dry_run:
             queue.restore(run)
         done = run.epochs_done()
+        steps = None if args.stop_at_level is None else run.reached(args.stop_at_level, args.stop_from_steps)
+        if steps is not None:
+            print(f"{run.entry} seed {run.seed}: level ({args.stop_at_level}) reached at {steps:,.0f} real env "
+                  f"steps ({done} epochs)", flush=True)
+            continue
         if done >= run.epochs and (run.folder / FINAL_EVALUATION).is_file():
             print(f"{run.entry} seed {run.seed}: done ({done} of {run.epochs} epochs)", flush=True)
             continue

@@ -498,6 +498,42 @@ def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_queue_stopping_at_a_level_stops_each_run_there_and_starts_none_that_reached_it(tmp_path, capsys,
+                                                                                         monkeypatch):
+    queue = load_queue()
+    monkeypatch.setattr(queue, "LEVEL_CHECK_SECONDS", 0.0)
+    # A train.py that evaluates every epoch (1,000 real steps) and reaches (c) at its third; on SIGTERM
+    # it ends at its epoch's end, as train.py does.
+    code = committed_code(tmp_path / "code", f"""import signal, sys, time
+from pathlib import Path
+arguments = dict(part.split("=", 1) for part in sys.argv[1:])
+folder = Path(arguments["hydra.run.dir"])
+stop = []
+signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+with open(folder / "metrics.csv", "w") as metrics:
+    metrics.write("epoch,real_env_steps,{columns.GRID_MEAN},{columns.GRID_MIN}\\n")
+    for epoch in range(1, 200):
+        walks = epoch >= 3
+        metrics.write(f"{{epoch}},{{1000 * epoch}},{{5.5 if walks else 1.0}},{{3.0 if walks else 0.0}}\\n")
+        metrics.flush()
+        if stop:
+            break
+        time.sleep(0.05)
+""")
+    (tmp_path / "plan.yaml").write_text(yaml.safe_dump({"se-trpo": {"overrides": ["source=se"], "epochs": 199}}))
+    arguments = ["--code", str(code), "--runs", str(tmp_path / "runs"), "--plan", str(tmp_path / "plan.yaml"),
+                 "--entries", "se-trpo", "--seeds", "0", "--stop-at-level", "c", "--stop-from-steps", "6000"]
+    assert queue.main(arguments) == 0
+    assert "se-trpo seed 0: level (c) reached at 3,000 real env steps; stopping it" in capsys.readouterr().out
+    metrics = (tmp_path / "runs" / "se-trpo" / "seed0" / "metrics.csv").read_text().splitlines()
+    assert 6 <= len(metrics) - 1 < 150  # past --stop-from-steps, then stopped long before its budget
+    assert queue.main(arguments) == 0  # a run that reached the level is not started again
+    printed = capsys.readouterr().out
+    assert "se-trpo seed 0: level (c) reached at 3,000 real env steps" in printed and "started" not in printed
+    with pytest.raises(SystemExit):
+        queue.main(arguments[:-4] + ["--stop-from-steps", "6000"])  # a step floor without a level
+
+
 def test_no_two_of_many_entries_are_drawn_alike():
     from unipolicy_rl.report.league import line_style
 
