@@ -236,7 +236,11 @@ class _TransformerActorNetwork(nn.Module):
 
     def forward(self, tokens, token_mask, token_parent):
         encoded = self.encoder(tokens, token_mask, token_parent)
-        head_input = torch.cat([tokens, encoded], -1) if self.reads_token else encoded
+        if self.reads_token:  # padding rows zeroed: whatever they hold never reaches a gradient
+            real = torch.where(token_mask.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
+            head_input = torch.cat([real, encoded], -1)
+        else:
+            head_input = encoded
         return self.std(self.action_head(head_input).squeeze(-1))
 
     def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
