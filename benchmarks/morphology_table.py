@@ -108,17 +108,23 @@ def specialist_panels(specialists) -> dict[str, Panel]:
 
 def figure_panels(specialists, comparisons) -> list[Panel]:
     """Every specialist's morphology, then every other morphology an entry was evaluated on, each
-    with every entry's grid mean on it: an entry cut to one robot adds a line to that robot's
-    panel, it does not replace the others."""
+    with every entry's grid mean on it (the median over its runs there, with their count where
+    more than one): an entry cut to one robot adds a line to that robot's panel, it does not
+    replace the others."""
     panels = specialist_panels(specialists)
+    by_entry: dict[str, dict[str, list[float]]] = {}
     for row in comparisons:
-        entry = f"{row.entry.split(',')[0]} x{row.entry.split(',')[1].split()[0]}: {row.universal:.2f} m"
-        panel = panels.get(row.derivation)
-        if panel is None:
+        if row.derivation not in panels:
             head = (f"{row.side}, {row.links} links",
                     "specialist " + ("-" if row.specialist is None else f"{row.specialist:.2f} m"))
-            panel = Panel(row.derivation, row.side, row.links, head)
-        panels[row.derivation] = panel._replace(lines=(*panel.lines, entry))
+            panels[row.derivation] = Panel(row.derivation, row.side, row.links, head)
+        by_entry.setdefault(row.derivation, {}).setdefault(row.entry, []).append(row.universal)
+    for derivation, entries in by_entry.items():
+        lines = []
+        for entry, values in entries.items():
+            runs = "" if len(values) == 1 else f" ({len(values)} runs)"
+            lines.append(f"{entry.split(',')[0]} x{entry.split(',')[1].split()[0]}: {np.median(values):.2f} m{runs}")
+        panels[derivation] = panels[derivation]._replace(lines=(*panels[derivation].lines, *lines))
     return list(panels.values())
 
 

@@ -181,11 +181,13 @@ def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_p
     assert panels["x"].lines == ("held_out 0, 9 links", "specialist 2.00 m", "worst design 1.00 m")
     # An entry cut to one robot adds its line to that robot's panel; the other specialists keep theirs,
     # and a morphology only an entry was evaluated on gets a panel of its own.
+    # Two runs of one entry on a robot: one line, their median.
     one_robot = [table.Comparison("token_transformer, 1 morphologies", "b", "trained", 12, 2.5, 3.0),
+                 table.Comparison("token_transformer, 1 morphologies", "b", "trained", 12, 1.5, 3.0),
                  table.Comparison("token_transformer, 1 morphologies", "y", "held_out", 7, 0.1, None)]
     panels = benchmark.figure_panels(scores, one_robot)
     assert [panel.derivation for panel in panels] == ["x", "b", "y"]
-    assert panels[1].lines[-1] == "token_transformer x1: 2.50 m" and panels[0].lines[-1] == "worst design 1.00 m"
+    assert panels[1].lines[-1] == "token_transformer x1: 2.00 m (2 runs)" and panels[0].lines[-1] == "worst design 1.00 m"
     assert panels[2].lines == ("held_out, 7 links", "specialist -", "token_transformer x1: 0.10 m")
 
     from hydra import compose, initialize_config_dir
