@@ -242,7 +242,8 @@ def test_matched_steps_compare_each_robot_at_equal_real_steps_per_robot(tmp_path
     # The transformer cut to robot a (trained: a only) reads its own steps.
     assert found["spec_a_transformer", "a", 20000] == (9.0, 0.5)
     text = table.format_matched_steps(rows)
-    assert "| universal | 20,000 | 1.00 0.40 | 0.50 0.30 | 0.70 m | 0.40 m (2 robots) |" in text
-    assert "| universal | 40,000 | 1.50 0.60 | 2.00 - | 1.50 m | 2.00 m (1 robots) |" in text
+    # ratios 2.0 and 1.33: median 167%, ahead on both; at 40,000 one robot, behind
+    assert "| universal | 20,000 | 1.00 0.40 | 0.50 0.30 | 0.70 m | 0.40 m (2 robots) | 167% | 2 of 2 |" in text
+    assert "| universal | 40,000 | 1.50 0.60 | 2.00 - | 1.50 m | 2.00 m (1 robots) | 75% | 0 of 1 |" in text
     with pytest.raises(ValueError, match=r"steps must be positive integers \(real env steps per robot\), got \[0\]"):
         table.compare_at_matched_steps(runs, [0], sides_of=lambda run: SIDES)

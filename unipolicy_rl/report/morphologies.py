@@ -254,9 +254,12 @@ def compare_at_matched_steps(runs: Iterable[Run], steps: Sequence[int], sides_of
 
 def format_matched_steps(rows: Sequence[MatchedSteps]) -> str:
     """Per universal run and step count: universal and specialist grid means on each trained
-    robot, and their means over the robots where both got that far."""
+    robot, their means over the robots where both got that far, the median over those robots of
+    universal / specialist (robots whose specialist does not move forward left out, as in the
+    final table) and on how many of them the universal policy is ahead."""
     lines = ["| universal run | real env steps per robot | universal, per robot (m) | specialist, per robot (m) | "
-             "universal mean | specialist mean |", "|---|---|---|---|---|---|"]
+             "universal mean | specialist mean | universal / specialist (median) | ahead |",
+             "|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple[str, int], list[MatchedSteps]] = defaultdict(list)
     for row in rows:
         groups[(row.run, row.steps)].append(row)
@@ -266,9 +269,12 @@ def format_matched_steps(rows: Sequence[MatchedSteps]) -> str:
             continue
         universal = " ".join("-" if row.universal is None else f"{row.universal:.2f}" for row in group)
         specialist = " ".join("-" if row.specialist is None else f"{row.specialist:.2f}" for row in group)
+        ratio = _median([row.universal / row.specialist for row in both if row.specialist > 0])
+        ahead = sum(row.universal > row.specialist for row in both)
         lines.append(f"| {run} | {steps:,} | {universal} | {specialist} | "
                      f"{statistics.mean(row.universal for row in both):.2f} m | "
-                     f"{statistics.mean(row.specialist for row in both):.2f} m ({len(both)} robots) |")
+                     f"{statistics.mean(row.specialist for row in both):.2f} m ({len(both)} robots) | "
+                     f"{_percent(ratio)} | {ahead} of {len(both)} |")
     return "\n".join(lines)
 
 
