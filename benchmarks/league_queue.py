@@ -56,6 +56,7 @@ CHECKPOINT = "checkpoint.pt"
 FINAL_EVALUATION = Path("evaluation") / "designs.csv"  # train.py's grid evaluation after the last epoch
 FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
 LEVEL_CHECK_SECONDS = 30.0  # how often a running run's metrics are read for --stop-at-level
+LEVELS_BY_NAME = {level.label.strip("()"): level for level in LEVELS}  # "a", "b", "c" -> the league's level
 
 
 @dataclass(frozen=True)
@@ -83,9 +84,8 @@ class Run:
         or ``c``), once its evaluations have got to ``from_steps`` real steps; None before."""
         if not (self.folder / "metrics.csv").is_file():
             return None
-        found = {item.label.strip("()"): item for item in LEVELS}[level].find
         done = evaluations(load_run(self.folder, f"{self.entry}/seed{self.seed}"))
-        at = found(done)
+        at = LEVELS_BY_NAME[level].find(done)
         return at.steps if at is not None and done[-1].steps >= from_steps else None
 
 
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                              "archive (0: off); needs --archive")
     parser.add_argument("--stop-after", type=float, default=None,
                         help="minutes after which the queue stops its runs (at their epoch's end) and starts no more")
-    parser.add_argument("--stop-at-level", choices=[item.label.strip("()") for item in LEVELS], default=None,
+    parser.add_argument("--stop-at-level", choices=sorted(LEVELS_BY_NAME), default=None,
                         help="stop each run once it has reached this league level, and start none that has")
     parser.add_argument("--stop-from-steps", type=float, default=0.0,
                         help="with --stop-at-level: not before the run's evaluations reach this many real env "
