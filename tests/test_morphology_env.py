@@ -11,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 
 from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, MorphologyWalkerEnv, PhysicsSettings, walking_reward
 from unipolicy_rl.envs.config import env_kwargs, make_morphology_env
+from unipolicy_rl.envs.slot_layout import StructuralLayout
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
 from unipolicy_rl.envs.tokens import (
     ACTION_MASK,
@@ -99,6 +100,44 @@ def test_padding_slots_are_exactly_zero_and_masked_through_steps():
         assert (td[TOKENS][~padding].abs().sum(-1) > 0).all()  # every real token says something (its kind)
         td = env.step(td.set("action", torch.rand(3, 18) * 2 - 1))["next"]
     env.close()
+
+
+def test_the_structural_layout_moves_each_link_to_its_roles_slot_and_nothing_else():
+    """The same robots, seed and actions in both layouts: the structural tokens are the packed
+    ones moved to their slots (parents, masks and motors following), padding zero in the gaps;
+    and a leg pair's links sit at the same slots on robots with different numbers of segments."""
+    layout = StructuralLayout(body_slots=3, leg_slots=3)  # SET: at most 3 segments, 2 pairs, 1-2 leg links
+    packed, structural = _env(max_links=15), _env(token_layout=layout)
+    assert structural.max_links == 3 + 2 * 2 * 3
+    slots = [describe(m.derivation()).links for m in SET]
+    slots = [torch.as_tensor(layout.slots([link.name for link in links])) for links in slots]
+    assert slots[0][:4].tolist() == [0, 1, 2, 3] and slots[1][:3].tolist() == [0, 1, 3]  # first pair's mount at 3
+    actions = torch.rand(5, 3, 15, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    tds = []
+    for env in (packed, structural):
+        env.set_seed(0)
+        td, steps = _forced(env, [0, 1, 2]), []
+        for action in actions:
+            moved = torch.zeros(3, env.max_links)
+            for i, s in enumerate(slots):
+                moved[i, s if env is structural else torch.arange(len(s))] = action[i, :len(s)]
+            td = env.step(td.set("action", moved))["next"]
+            steps.append(td.clone())
+        tds.append(torch.stack(steps))
+    for i, s in enumerate(slots):
+        n = len(s)
+        assert torch.equal(tds[1][:, i][TOKENS][:, s], tds[0][:, i][TOKENS][:, :n])
+        assert torch.equal(tds[1][:, i][ACTION_MASK][:, s], tds[0][:, i][ACTION_MASK][:, :n])
+        parents = tds[0][0, i][TOKEN_PARENT][:n]
+        assert torch.equal(tds[1][0, i][TOKEN_PARENT][s], torch.where(parents >= 0, s[parents.clamp(min=0)], -1))
+        gaps = torch.ones(structural.max_links, dtype=torch.bool)
+        gaps[s] = False
+        assert tds[1][:, i][TOKEN_MASK][:, s].all() and not tds[1][:, i][TOKEN_MASK][:, gaps].any()
+        assert (tds[1][:, i][TOKENS][:, gaps] == 0).all() and (tds[1][0, i][TOKEN_PARENT][gaps] == -1).all()
+    assert torch.equal(tds[1]["reward"], tds[0]["reward"])
+    check_env_specs(structural, seed=0)
+    packed.close()
+    structural.close()
 
 
 def test_reset_forces_morphology_and_design_and_rebuilds_only_masked_robots():
@@ -248,6 +287,11 @@ def test_a_physics_fault_truncates_that_robot_only_and_repeats_its_last_tokens()
     (lambda: _env(morphologies=(SIX_LINKS,), driven_joints=("axial_roll",)), "morphology 0 has no hinge"),
     (lambda: _env(sampling="round_robin"), "round_robin"),
     (lambda: _env(max_links=0), "max_links"),
+    (lambda: _env(token_layout=StructuralLayout(2, 4)), r"morphology 0 does not fit the token layout: link 'body_2'"),
+    (lambda: _env(token_layout=StructuralLayout(3, 2)), r"morphology 0 does not fit .* leg_slots=2"),
+    (lambda: _env(token_layout=StructuralLayout(3, 3), max_links=14), r"morphology 0 puts a link at slot 14"),
+    (lambda: _env(token_layout="structural"), "token_layout must be None .* got 'structural'"),
+    (lambda: StructuralLayout(0, 3), "body_slots must be a positive integer, got 0"),
     (lambda: _forced(_env(2), [0, 7]), "unknown morphology index 7 for robot 1"),
     (lambda: _forced(_env(2), [-1, 0]), "unknown morphology index -1 for robot 0"),
 ])
@@ -270,6 +314,12 @@ def test_the_grammar_config_builds_the_env_of_its_split():
     assert env.design_distribution.is_deterministic
     check_env_specs(env, seed=0)
     env.close()
+    structural = make_morphology_env(_grammar_config("robot.token_layout=structural"), 1)
+    assert structural.token_layout == StructuralLayout(body_slots=5, leg_slots=4)
+    assert structural.max_links == 5 + 2 * 3 * 4  # the same slots as packed: one block per link a robot may have
+    structural.close()
+    with pytest.raises(ValueError, match="robot.token_layout must be one of .* got 'diagonal'"):
+        make_morphology_env(_grammar_config("robot.token_layout=diagonal"), 1)
     held_out = make_morphology_env(_grammar_config("robot.morphologies=held_out", "robot.max_links=40"), 1)
     assert len(held_out.morphologies) == 2 and held_out.max_links == 40
     held_out.close()

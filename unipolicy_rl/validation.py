@@ -27,6 +27,7 @@ from unipolicy_rl.collectors.distributed import require_ray
 from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
 from unipolicy_rl.envs.morphology import SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
+from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
 from unipolicy_rl.envs.tokens import MORPHOLOGY
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
@@ -131,6 +132,7 @@ ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
         "robot.sampling": _one_of(set(SAMPLINGS)),
         "robot.max_links": _optional(POSITIVE),
         "robot.design_in_tokens": _flag,
+        "robot.token_layout": _one_of(set(TOKEN_LAYOUTS)),
         "robot.evaluation_every_steps": POSITIVE,
     },
 }

@@ -16,6 +16,7 @@ from torchrl.envs import EnvBase
 
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
 from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
+from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS, StructuralLayout
 from unipolicy_rl.robots.grammar import Morphology, MorphologySplit
 
 GRAMMAR_SIDES = ("train", "held_out", "all")
@@ -87,7 +88,10 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
     """Keyword arguments of :class:`MorphologyWalkerEnv` (all but ``num_robots``) for the
     morphologies of ``side`` (default ``robot.morphologies``). Unset ``max_links`` pads to the
     most links any robot of the split's size limits may have, so held-out robots fit the same
-    tokens (and a padded-MLP policy, whose weights are tied to the padding, runs on every side)."""
+    tokens (and a padded-MLP policy, whose weights are tied to the padding, runs on every side).
+    ``robot.token_layout: structural`` fixes each link's slot by its role, with room for every
+    robot of the split's size limits (:class:`StructuralLayout`); ``packed`` (the default, and
+    what configs from before the setting mean) fills the first slots in link order."""
     if robot_kind(cfg) != "grammar":
         raise ValueError(f"a MorphologyWalkerEnv needs robot=grammar, got robot kind {robot_kind(cfg)!r}")
     robot = cfg.robot
@@ -95,6 +99,9 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
     limits = instantiate(robot.split.train_limits, _convert_="all"), instantiate(robot.split.held_out_limits,
                                                                                  _convert_="all")
     max_links = robot.max_links if robot.max_links is not None else max(limit.max_links for limit in limits)
+    layout = robot.get("token_layout", "packed")
+    if layout not in TOKEN_LAYOUTS:
+        raise ValueError(f"robot.token_layout must be one of {TOKEN_LAYOUTS}, got {layout!r}")
     return {
         "morphologies": morphologies,
         "max_links": max_links,
@@ -105,6 +112,7 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
         "sampling": robot.sampling,
         "driven_joints": None if robot.driven_joints is None else tuple(robot.driven_joints),
         "design_in_tokens": robot.design_in_tokens,
+        "token_layout": StructuralLayout.covering(limits) if layout == "structural" else None,
     }
 
 

@@ -25,6 +25,7 @@ from unipolicy_rl.envs.link_tokens import BUILT, LINK_STATE_SIZE, MOVING, RobotT
 from unipolicy_rl.envs.morphology_simulation import MorphologySimulation
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, healthy_rows, joint_targets
+from unipolicy_rl.envs.slot_layout import StructuralLayout, packed_slots
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKEN_PARENT, TOKEN_SIZE, TOKENS
 from unipolicy_rl.robots import RobotDescription
 from unipolicy_rl.robots.grammar import RULES, Morphology, PartKinds, derive, describe, part_kinds, split_morphologies
@@ -42,12 +43,14 @@ HINGE_TYPES = tuple(sorted({edge.joint.name for rule in RULES.values() for edge 
 @dataclass(frozen=True, eq=False)
 class _Morph:
     """What the env keeps of one morphology of its set: its derived graph, its parts' kinds, the
-    hinges it drives, and the robot at the design the tokens report sizes of."""
+    hinges it drives, the robot at the design the tokens report sizes of, and the token slot of
+    each of its links (:mod:`unipolicy_rl.envs.slot_layout`)."""
 
     graph: RobotGraph
     kinds: PartKinds
     driven: tuple[str, ...]
     nominal: RobotDescription
+    slots: np.ndarray
 
     def describe(self, design: Design) -> RobotDescription:
         return describe(self.graph, design.length, design.density, actuated=self.driven)
@@ -64,8 +67,8 @@ class MorphologyWalkerEnv(EnvBase):
     Keys: ``tokens``, ``token_mask``, ``token_parent``, ``action_mask`` and ``morphology`` (see
     :mod:`unipolicy_rl.envs.tokens`), ``design`` (l, rho of each robot's build), ``physics_fault``,
     plus TorchRL's reward and done/terminated/truncated. The action is ``[num_robots, max_links]``
-    in [-1, 1]: slot i drives link i's parent joint where ``action_mask`` is True and is ignored
-    elsewhere. Episodes are truncated after ``episode_length`` steps (never with None) and early on
+    in [-1, 1]: slot i drives the parent joint of the link at slot i where ``action_mask`` is True
+    and is ignored elsewhere. Episodes are truncated after ``episode_length`` steps (never with None) and early on
     a physics fault, which repeats the robot's last good tokens. A reset draws each robot's
     morphology (``sampling``) and design; a ``morphology`` or ``design`` in the reset tensordict
     forces them for the robots reset (evaluation). Partial resets and steps (``_reset``, ``_step``)
@@ -73,7 +76,10 @@ class MorphologyWalkerEnv(EnvBase):
 
     ``driven_joints``: the hinge types the policy drives (e.g. ``("axial_roll",)``), the others
     locked; None drives every hinge, as RoboGrammar. ``design_in_tokens``: tokens give each link's
-    size at the episode's design instead of at the design distribution's mean.
+    size at the episode's design instead of at the design distribution's mean. ``token_layout``:
+    None packs each robot's links into the first slots in link order; a
+    :class:`~unipolicy_rl.envs.slot_layout.StructuralLayout` puts each link at the slot its role
+    in the body fixes, padding in the gaps (the masks and ``token_parent`` follow the slots).
     """
 
     batch_locked = True
@@ -90,6 +96,7 @@ class MorphologyWalkerEnv(EnvBase):
         sampling: str = "uniform",
         driven_joints: Sequence[str] | None = None,
         design_in_tokens: bool = False,
+        token_layout: StructuralLayout | None = None,
         device: str | torch.device = "cpu",
     ):
         if not (isinstance(num_robots, (int, np.integer)) and num_robots >= 1):
@@ -109,17 +116,13 @@ class MorphologyWalkerEnv(EnvBase):
             unknown = sorted(set(driven_joints) - set(HINGE_TYPES))
             if unknown or not driven_joints:
                 raise ValueError(f"driven_joints must name hinge types {list(HINGE_TYPES)}, got {list(driven_joints)}")
-        largest = max(morphology.num_links for morphology in morphologies)
-        max_links = largest if max_links is None else max_links
-        if not (isinstance(max_links, (int, np.integer)) and max_links >= 1):
+        if token_layout is not None and not isinstance(token_layout, StructuralLayout):
+            raise ValueError(f"token_layout must be None (packed) or a StructuralLayout, got {token_layout!r}")
+        if max_links is not None and not (isinstance(max_links, (int, np.integer)) and max_links >= 1):
             raise ValueError(f"max_links must be a positive integer or None, got {max_links!r}")
-        for index, morphology in enumerate(morphologies):
-            if morphology.num_links > max_links:
-                raise ValueError(f"morphology {index} has {morphology.num_links} links, more than max_links="
-                                 f"{max_links} token slots: raise max_links ({morphology.derivation()})")
         super().__init__(batch_size=torch.Size([num_robots]), device=device)
         self.morphologies = morphologies
-        self.max_links = int(max_links)
+        self.token_layout = token_layout
         self.design_distribution = design or DesignDistribution()
         self.physics = physics or PhysicsSettings()
         self.reward_weights = reward_weights or RewardWeights()
@@ -128,12 +131,22 @@ class MorphologyWalkerEnv(EnvBase):
         self.design_in_tokens = design_in_tokens
         self._morphs = [self._prepare(index, morphology, driven_joints)
                         for index, morphology in enumerate(morphologies)]
+        needed = max(int(morph.slots.max()) + 1 for morph in self._morphs)
+        self.max_links = needed if max_links is None else int(max_links)
+        for index, (morphology, morph) in enumerate(zip(morphologies, self._morphs, strict=True)):
+            if morph.slots.max() >= self.max_links:
+                what = (f"has {morphology.num_links} links" if token_layout is None
+                        else f"puts a link at slot {int(morph.slots.max())} of the structural layout")
+                raise ValueError(f"morphology {index} {what}, more than max_links={self.max_links} token slots: "
+                                 f"raise max_links ({morphology.derivation()})")
         self.simulations = [MorphologySimulation(self.physics) for _ in range(num_robots)]
 
         n, links = num_robots, self.max_links
         self._rng = np.random.default_rng()
         self._deck: list[int] = []
         self._robots: list[RobotTokens | None] = [None] * n
+        self._slots: list[np.ndarray] = [packed_slots(0)] * n  # each robot's link -> slot
+        self._driven_slots: list[np.ndarray] = [packed_slots(0)] * n  # its motors' slots, in motor order
         self._link_states = np.zeros((n, links, LINK_STATE_SIZE))
         self._joints = np.zeros((n, links, 2))
         self._start_xy = np.zeros((n, 2))
@@ -161,7 +174,13 @@ class MorphologyWalkerEnv(EnvBase):
             raise ValueError(f"morphology {index} has no hinge of the driven types {list(driven_types)}: "
                              f"its joints are {sorted(set(kinds.joints))} ({morphology.derivation()})")
         mean = self.design_distribution.mean
-        return _Morph(graph, kinds, driven, describe(graph, mean.length, mean.density, actuated=driven))
+        try:
+            slots = (packed_slots(len(every.links)) if self.token_layout is None
+                     else self.token_layout.slots([link.name for link in every.links]))
+        except ValueError as error:
+            raise ValueError(f"morphology {index} does not fit the token layout: {error} "
+                             f"({morphology.derivation()})") from None
+        return _Morph(graph, kinds, driven, describe(graph, mean.length, mean.density, actuated=driven), slots)
 
     def _make_specs(self) -> None:
         shape, links, device = self.batch_size, self.max_links, self.device
@@ -229,15 +248,18 @@ class MorphologyWalkerEnv(EnvBase):
         self._start_xy[i] = self.simulations[i].build(description)
         self._base_inertial_rotations[i] = self.simulations[i].base_inertial_rotation
         robot = robot_tokens(description, morph.kinds.links, description if self.design_in_tokens else morph.nominal)
-        links = robot.num_links
+        slots = morph.slots
         self._robots[i] = robot
-        self._token_mask[i] = np.arange(self.max_links) < links
+        self._slots[i] = slots
+        self._driven_slots[i] = slots[robot.driven_links]
+        self._token_mask[i] = False
+        self._token_mask[i, slots] = True
         self._parents[i] = -1
-        self._parents[i, :links] = robot.parents
+        self._parents[i, slots] = np.where(robot.parents >= 0, slots[robot.parents], -1)
         self._action_mask[i] = False
-        self._action_mask[i, :links] = robot.action_mask
+        self._action_mask[i, slots] = robot.action_mask
         self._built[i] = 0.0
-        self._built[i, :links] = robot.built
+        self._built[i, slots] = robot.built
         self._link_states[i] = 0.0
         self._joints[i] = 0.0
         self._read(i)
@@ -249,8 +271,8 @@ class MorphologyWalkerEnv(EnvBase):
     def _read(self, i: int) -> None:
         robot = self._robots[i]
         states, joints = self.simulations[i].read()
-        self._link_states[i, :robot.num_links] = np.reshape(states, (robot.num_links, LINK_STATE_SIZE))
-        self._joints[i, robot.driven_links] = np.reshape(joints, (-1, 2))
+        self._link_states[i, self._slots[i]] = np.reshape(states, (robot.num_links, LINK_STATE_SIZE))
+        self._joints[i, self._driven_slots[i]] = np.reshape(joints, (-1, 2))
 
     def _compose(self, rows: np.ndarray) -> None:
         """The tokens of robots ``rows`` from their last read state; padding exactly zero."""
@@ -272,7 +294,7 @@ class MorphologyWalkerEnv(EnvBase):
         targets = joint_targets(np.where(self._action_mask, action, 0.0), self.physics.action_range)
         active = np.flatnonzero(stepping)
         for i in active:  # read each robot right after its physics, while its world is in cache
-            self.simulations[i].advance(targets[i, self._robots[i].driven_links].tolist())
+            self.simulations[i].advance(targets[i, self._driven_slots[i]].tolist())
             self._read(i)
         self._compose(active)
         good = stepping & healthy_rows(self._tokens.reshape(n, -1))

@@ -8,12 +8,14 @@ that read them and the learners that must ignore the padding; they live here, on
 
 Shapes (``*`` is the env's batch shape, ``L`` the padded number of links):
 
-- ``TOKENS``: ``[*, L, F]`` float32, one feature row per link (the root, the base link, first).
+- ``TOKENS``: ``[*, L, F]`` float32, one feature row per slot (the root, the base link, at slot
+  0); which slot each link takes is the env's layout (:mod:`unipolicy_rl.envs.slot_layout`:
+  packed in link order, or fixed by the link's role, with padding in the gaps).
 - ``TOKEN_MASK``: ``[*, L]`` bool, True for a real link, False for padding.
 - ``TOKEN_PARENT``: ``[*, L]`` int64, the token index of the link's parent in the body tree;
   -1 for the root and for padding (what a graph-masked attention reads).
 - ``ACTION_MASK``: ``[*, L]`` bool, True where the link's joint to its parent is actuated.
-  The action is ``[*, L]``: slot ``i`` drives link ``i``'s parent joint; slots where the mask
+  The action is ``[*, L]``: slot ``i`` drives its link's parent joint; slots where the mask
   is False (the root, fixed joints, padding) are ignored by the env and must count for nothing
   in a learner's log-probabilities, entropy and KL.
 - ``MORPHOLOGY``: ``[*, 1]`` int64, which robot of the env's morphology set each robot is (an
