@@ -93,6 +93,19 @@ def test_a_model_based_run_is_an_entry_measured_against_the_real_specialists(tmp
     assert "| token_mlp on moe, 1 morphologies | 75% (1 compared) | 1/1 | - (0 compared) | - |" in text
 
 
+def test_a_run_on_the_structural_layout_is_an_entry_of_its_own(runs, tmp_path):
+    path = write_run(tmp_path, "mlp_structural", "token_mlp", {"a": 3.0, "x": 2.0}, training_morphologies=2)
+    config = OmegaConf.load(path / ".hydra" / "config.yaml")
+    config.robot.token_layout = "structural"
+    OmegaConf.save(config, path / ".hydra" / "config.yaml")
+    rows = table.compare([*runs, load_run(path, path.name)], sides_of=lambda run: SIDES)
+    by_entry = {}
+    for row in rows:
+        by_entry.setdefault(row.entry, []).append(row.derivation)
+    assert sorted(by_entry["token_mlp, 2 morphologies, structural layout"]) == ["a", "x"]
+    assert sorted(by_entry["token_mlp, 2 morphologies"]) == ["a", "b", "x", "y", "z"]  # the packed run alone
+
+
 def test_a_run_cut_to_one_robot_trained_on_that_robot_alone(tmp_path):
     from hydra import compose, initialize_config_dir
 

@@ -149,12 +149,15 @@ def is_specialist(run: Run) -> bool:
 
 
 def entry_name(run: Run) -> str:
-    """A run's entry: its policy, the world model it trained on (if any) and the number of
-    morphologies it trained on (1 for a run cut to one robot)."""
+    """A run's entry: its policy, the world model it trained on (if any), the number of
+    morphologies it trained on (1 for a run cut to one robot), and its token layout where it is
+    not the default packed one (a padded MLP on another layout is another policy)."""
     robot = run.config["robot"]
     count = 1 if robot.get("specialist") is not None else robot.get("training_morphologies")
     source = f" on {run.config['source']['name']}" if is_model_based(run) else ""
-    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies"
+    layout = robot.get("token_layout") or "packed"
+    layout = "" if layout == "packed" else f", {layout} layout"
+    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}"
 
 
 def split_sides(run: Run) -> dict[str, str]:
