@@ -35,7 +35,7 @@ from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
 from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
 from unipolicy_rl.learners.off_policy import check_model_based_imagination
-from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater, TrustRegion
+from unipolicy_rl.objectives import ClippedStep, ClippedSurrogate, TRPOLoss, TRPOUpdater, TrustRegion
 from unipolicy_rl.observation_statistics import ObservationStatistics
 from unipolicy_rl.policy import (
     TOKEN_POLICIES,
@@ -209,6 +209,8 @@ def resolve_device(name: str) -> torch.device:
 
 def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> TRPOLearner:
     """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser.
+    ``algo=ppo`` builds the same learner with PPO's clipped epochs as the policy step
+    (:func:`clipped_surrogate`).
 
     For a token policy (``policy=token_transformer|token_mlp``, on ``robot=grammar``) the sizes are
     the features per token and the padded number of tokens (:func:`probe_dimensions`); the
@@ -227,9 +229,12 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage, entropy_coeff=algo.entropy_coeff,
                     advantage_groups=algo.get("advantage_groups"))
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    ppo = algo.name == "ppo"
     updater = TRPOUpdater(
-        loss, trust_region=make_trust_region(cfg), critic_lr=algo.critic_lr, critic_epochs=algo.critic_epochs,
-        critic_minibatch_size=algo.critic_minibatch_size, generator=torch.Generator().manual_seed(cfg.seed),
+        loss, trust_region=None if ppo else make_trust_region(cfg), critic_lr=algo.critic_lr,
+        critic_epochs=algo.critic_epochs, critic_minibatch_size=algo.critic_minibatch_size, generator=generator,
+        clipped_step=ClippedStep(loss, actor, clipped_surrogate(cfg), generator) if ppo else None,
     )
     return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor), statistics,
                        algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)
@@ -256,16 +261,27 @@ def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: i
                             ObservationStatistics(observation_dim), observation_dim, action_dim, model_based)
 
 
+def clipped_surrogate(cfg: DictConfig) -> ClippedSurrogate:
+    """PPO's policy-step settings from ``algo`` (``conf/algo/ppo.yaml``)."""
+    algo = cfg.algo
+    return ClippedSurrogate(epochs=algo.policy_epochs, minibatch_size=algo.policy_minibatch_size, lr=algo.policy_lr,
+                            clip_epsilon=algo.clip_epsilon, max_grad_norm=algo.max_grad_norm,
+                            target_kl=algo.target_kl)
+
+
 # ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
 LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
     "trpo": make_trpo_learner,
+    "ppo": make_trpo_learner,
     **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
 }
 
 
-def learner_settings(cfg: DictConfig) -> TrustRegion | OffPolicySettings:
+def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPolicySettings:
     """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
-    return make_trust_region(cfg) if cfg.algo.name == "trpo" else off_policy_settings(cfg)
+    if cfg.algo.name == "trpo":
+        return make_trust_region(cfg)
+    return clipped_surrogate(cfg) if cfg.algo.name == "ppo" else off_policy_settings(cfg)
 
 
 def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:

@@ -36,6 +36,10 @@ NORMALIZED_TOKENS = "tokens_norm"
 # read link tokens and drive the padded, masked action of unipolicy_rl.envs.tokens.
 FLAT_POLICIES = ("mlp",)
 TOKEN_POLICIES = ("token_transformer", "token_mlp")
+# ``algo.name`` of the on-policy learners, which train this module's Gaussian policies (the flat
+# MLP and the token policies) with GAE and a critic fit: TRPO's natural-gradient step or PPO's
+# clipped epochs. The off-policy learners build their own tanh-Gaussian actor.
+ON_POLICY_ALGOS = ("trpo", "ppo")
 # ``policy.critic`` of a token policy: the state value GAE and the critic fit use. ``transformer``:
 # its own token transformer, of ``policy.critic_network``'s sizes (unset: ``policy.network``'s);
 # ``pooled``: the pooled token MLP (Deep Sets) of ``algo.critic_hidden``; ``padded_mlp``: the
@@ -101,13 +105,13 @@ def make_collecting_policy(normalizer: ObservationNorm, actor: TensorDictModuleB
 
 
 def make_policy_actor(cfg: DictConfig, observation_dim: int, action_dim: int) -> TensorDictModuleBase:
-    """The actor ``cfg.algo`` trains, reading the normalised observation: TRPO's Gaussian (its
-    std a free parameter), or the off-policy learners' tanh-Gaussian."""
+    """The actor ``cfg.algo`` trains, reading the normalised observation: the on-policy learners'
+    Gaussian (TRPO's and PPO's; its std a free parameter), or the off-policy learners' tanh-Gaussian."""
     algo = cfg.algo
     if (architecture := policy_architecture(cfg)) != "mlp":
         raise ValueError(f"policy={architecture} reads link tokens, not a flat observation of {observation_dim}: "
                          "build it with make_token_actor_critic on an env that writes tokens (robot=grammar)")
-    if algo.get("name", "trpo") == "trpo":  # (checkpoints from before algo.name are TRPO's)
+    if algo.get("name", "trpo") in ON_POLICY_ALGOS:  # (checkpoints from before algo.name are TRPO's)
         return make_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
                           observation_key=NORMALIZED_OBSERVATION)
     return make_tanh_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation,
@@ -115,7 +119,7 @@ def make_policy_actor(cfg: DictConfig, observation_dim: int, action_dim: int) ->
 
 
 def make_actor_critic(cfg: DictConfig, observation_dim: int, action_dim: int):
-    """TRPO's actor and state-value critic from ``cfg.algo``, both reading the normalised observation."""
+    """The on-policy actor and state-value critic from ``cfg.algo``, both reading the normalised observation."""
     algo = cfg.algo
     actor = make_policy_actor(cfg, observation_dim, action_dim)
     critic = make_critic(observation_dim, tuple(algo.critic_hidden), algo.activation,
@@ -145,8 +149,9 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
     if architecture not in TOKEN_POLICIES:
         raise ValueError(f"make_token_actor_critic builds {TOKEN_POLICIES}, got policy={architecture}")
     algo = cfg.algo
-    if algo.get("name", "trpo") != "trpo":
-        raise ValueError(f"the token policies are Gaussian policies for TRPO, not for algo={algo.name}")
+    if algo.get("name", "trpo") not in ON_POLICY_ALGOS:
+        raise ValueError(f"the token policies are Gaussian policies for {' or '.join(ON_POLICY_ALGOS)}, "
+                         f"not for algo={algo.name}")
     token_critic(cfg)  # a bad critic name fails before any network is built
     if architecture == "token_transformer":
         actor = make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,

@@ -31,7 +31,7 @@ from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
 from unipolicy_rl.envs.tokens import MORPHOLOGY
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
-from unipolicy_rl.policy import FLAT_POLICIES, TOKEN_POLICIES, token_critic
+from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, token_critic
 
 
 # The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
@@ -138,23 +138,23 @@ ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
 }
 
 
-# algo.name -> rules of the keys only that learner reads (an off-policy learner's settings are a
-# dataclass that checks itself: unipolicy_rl.learners.OffPolicySettings).
-ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
-    "trpo": {
-        "algo.init_log_std": _number(-20.0, 5.0),
-        "algo.gamma": _number(0.0, 1.0, low_open=True),
-        "algo.lmbda": _number(0.0, 1.0),
-        "algo.normalize_advantage": _flag,
-        "algo.advantage_groups": _optional(_one_of(set(ADVANTAGE_GROUPS))),
-        "algo.entropy_coeff": _number(0.0, INF, high_open=True),
-        "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
-        "algo.critic_epochs": POSITIVE,
-        "algo.critic_minibatch_size": POSITIVE,
-        "algo.max_consecutive_skips": POSITIVE,
-        "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
-    },
+# The keys every on-policy learner reads (GAE, the critic fit, the normaliser), checked by name.
+_ON_POLICY_RULES: dict[str, Callable[[object], str | None]] = {
+    "algo.init_log_std": _number(-20.0, 5.0),
+    "algo.gamma": _number(0.0, 1.0, low_open=True),
+    "algo.lmbda": _number(0.0, 1.0),
+    "algo.normalize_advantage": _flag,
+    "algo.advantage_groups": _optional(_one_of(set(ADVANTAGE_GROUPS))),
+    "algo.entropy_coeff": _number(0.0, INF, high_open=True),
+    "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
+    "algo.critic_epochs": POSITIVE,
+    "algo.critic_minibatch_size": POSITIVE,
+    "algo.max_consecutive_skips": POSITIVE,
+    "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
 }
+# algo.name -> rules of the keys only that learner reads. TRPO's trust region, PPO's clipped step and
+# an off-policy learner's settings are dataclasses that check themselves (factories.learner_settings).
+ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {name: _ON_POLICY_RULES for name in ON_POLICY_ALGOS}
 
 
 def _equal_shares(cfg: DictConfig) -> str | None:
@@ -193,9 +193,10 @@ def _token_critic_builds(cfg: DictConfig) -> str | None:
     return None
 
 
-def _grammar_learns_with_trpo(cfg: DictConfig) -> str | None:
-    if robot_kind(cfg) == "grammar" and cfg.algo.name != "trpo":
-        return f"algo={cfg.algo.name} with robot=grammar: the token policies are TRPO's Gaussians, use algo=trpo"
+def _grammar_learns_on_policy(cfg: DictConfig) -> str | None:
+    if robot_kind(cfg) == "grammar" and cfg.algo.name not in ON_POLICY_ALGOS:
+        return (f"algo={cfg.algo.name} with robot=grammar: the token policies are the on-policy learners' "
+                f"Gaussians, use algo={' or algo='.join(ON_POLICY_ALGOS)}")
     return None
 
 
@@ -254,7 +255,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot",): _known_robot,
     ("robot", "policy.name"): _policy_reads_the_robot,
     ("policy",): _token_critic_builds,
-    ("robot", "algo.name"): _grammar_learns_with_trpo,
+    ("robot", "algo.name"): _grammar_learns_on_policy,
     ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
 }
@@ -323,7 +324,7 @@ def validate_config(cfg: DictConfig) -> None:
         check_stopping_rule(imagination.stopping, model)
         if imagination.disagreement_cut is not None:
             check_members_disagree(model)
-        if cfg.algo.name != "trpo":
+        if cfg.algo.name not in ON_POLICY_ALGOS:
             check_model_based_imagination(imagination)
 
 

@@ -1,4 +1,5 @@
-"""TRPO as a :class:`~unipolicy_rl.learners.Learner`: GAE, one natural-gradient step and the critic fit per batch.
+"""TRPO as a :class:`~unipolicy_rl.learners.Learner`: GAE, one natural-gradient step and the critic fit per batch
+(or, with the updater's ``clipped_step``, PPO: the same update with PPO's clipped epochs as its policy step).
 
 The parts are :class:`~unipolicy_rl.objectives.TRPOLoss` and
 :class:`~unipolicy_rl.objectives.TRPOUpdater`; this class adds what a run needs around them: the
@@ -115,13 +116,16 @@ class TRPOLearner:
         return policy_state(self.actor, self.statistics)
 
     def state_dict(self) -> dict:
-        return {
+        state = {
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
             "observation_statistics": self.statistics.state_dict(),
             "critic_optimizer": self.updater.critic_optimizer.state_dict(),
             "critic_generator": self.updater.generator.get_state(),
         }
+        if self.updater.clipped_step is not None:
+            state["clipped_step"] = self.updater.clipped_step.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         self.actor.load_state_dict(state["actor"])
@@ -130,3 +134,8 @@ class TRPOLearner:
         self.statistics.copy_to(self.normalizer)
         self.updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.updater.generator.set_state(state["critic_generator"])
+        if self.updater.clipped_step is not None:
+            if "clipped_step" not in state:
+                raise KeyError("the checkpoint has no PPO policy optimizer ('clipped_step'): it was not saved by "
+                               "algo=ppo; resume it with the algo it ran")
+            self.updater.clipped_step.load_state_dict(state["clipped_step"])

@@ -1,10 +1,12 @@
-"""The full TRPO update: advantage, one natural-gradient policy step, then the critic fit."""
+"""The full on-policy update: advantage, one policy step (TRPO's natural gradient, or PPO's clipped
+epochs), then the critic fit."""
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
 
+from unipolicy_rl.objectives.clipped_step import ClippedStep, ClippedStepResult
 from unipolicy_rl.objectives.critic_fit import CriticFitResult, explained_variance, fit_critic, make_critic_optimizer
 from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
@@ -30,7 +32,9 @@ class TRPOUpdater:
     :attr:`skip_reasons` for the message.
 
     The policy step takes its settings from ``trust_region`` (default :class:`TrustRegion`); the critic defaults (Adam
-    ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib.
+    ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib. With
+    ``clipped_step`` (a :class:`ClippedStep` on the same loss) the policy moves by PPO's clipped
+    epochs instead (``algo=ppo``) and ``trust_region`` is not used; the rest of the update is the same.
     """
 
     def __init__(
@@ -42,14 +46,18 @@ class TRPOUpdater:
         critic_epochs: int = 10,
         critic_minibatch_size: int = 128,
         generator: torch.Generator | None = None,
+        clipped_step: ClippedStep | None = None,
     ) -> None:
+        if clipped_step is not None and clipped_step.loss is not loss_module:
+            raise ValueError("clipped_step must be built on the updater's loss_module")
         self.loss_module = loss_module
+        self.clipped_step = clipped_step
         self.trust_region = trust_region or TrustRegion()
         self.critic_optimizer = make_critic_optimizer(loss_module, critic_lr)
         self.critic_epochs = critic_epochs
         self.critic_minibatch_size = critic_minibatch_size
         self.generator = generator
-        self.last_step: TRPOStepResult | None = None
+        self.last_step: TRPOStepResult | ClippedStepResult | None = None
         self.last_critic_fit: CriticFitResult | None = None
         self.consecutive_skips = 0
 
@@ -69,7 +77,10 @@ class TRPOUpdater:
         loss.compute_advantage(batch)
         flat = batch.reshape(-1)
         advantage = loss.advantage(flat)
-        step = natural_gradient_step(loss, flat, advantage=advantage, trust_region=self.trust_region)
+        if self.clipped_step is not None:
+            step = self.clipped_step(flat, advantage)
+        else:
+            step = natural_gradient_step(loss, flat, advantage=advantage, trust_region=self.trust_region)
         self.last_step = step
         metrics = step.as_metrics("train/")
         metrics["train/explained_variance"] = explained_variance(
