@@ -113,7 +113,8 @@ def test_a_ppo_run_trains_and_resumes_exactly_and_bad_settings_are_named(tmp_pat
     resumed = run_train(*ppo, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
                         f"hydra.run.dir={tmp_path / 'resumed'}")
     assert resumed.returncode == 0, resumed.stderr
-    a, b = load_checkpoint(tmp_path / "straight" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["name"] == "ppo"
     assert_same_training_state(a, b)
     assert a["learner"]["clipped_step"]["optimizer"]["state"]  # the actor's Adam state is saved ...

@@ -158,7 +158,9 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
          "world_model.model_state=tokens .GaussianEnsemble. models link tokens, which robot=vertebrate does not write"),
         ([*GRAMMAR, "policy=token_mlp", "source=moe", "world_model.model.embedding=0"],
          "world_model.model: embedding must be a positive integer, got 0"),
-        ([*GRAMMAR, "policy=token_mlp", "algo=sac"], "algo=sac with robot=grammar: the token policies are the on-policy learners' Gaussians, use algo=trpo or algo=ppo"),
+        ([*GRAMMAR, "policy=token_mlp", "algo=sac"],
+         "algo=sac with robot=grammar: the token policies are the on-policy learners' Gaussians, "
+         "use algo=trpo or algo=ppo"),
         (["policy.name=cnn"], r"policy.name must be one of \['mlp', 'token_mlp', 'token_transformer'\], got 'cnn'"),
         (["algo.fisher_fraction=0"], r"algo: fisher_fraction must lie in \(0, 1\]"),
         (["algo.fisher_fraction=1.5"], r"algo: fisher_fraction must lie in \(0, 1\]"),

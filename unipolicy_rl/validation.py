@@ -33,7 +33,6 @@ from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
 from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, token_critic
 
-
 # The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
 # have their advantages standardised together.
 ADVANTAGE_GROUPS = (MORPHOLOGY,)
