@@ -368,8 +368,8 @@ def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp
     torch.save({"epoch": 12}, runs[0].folder / "checkpoint.pt")
     assert runs[0].epochs_done() == 12
     assert runs[0].command("python")[-1] == f"resume={runs[0].folder / 'checkpoint.pt'}"
-    with pytest.raises(SystemExit, match="se-ppo"):
-        queue.plan_runs(plan, ["se-ppo"], [0], tmp_path)
+    with pytest.raises(SystemExit, match="se-a2c"):
+        queue.plan_runs(plan, ["se-a2c"], [0], tmp_path)
 
 
 def committed_code(folder: Path, train_script: str) -> Path:
