@@ -93,6 +93,18 @@ def test_a_model_based_run_is_an_entry_measured_against_the_real_specialists(tmp
     assert "| token_mlp on moe, 1 morphologies | 75% (1 compared) | 1/1 | - (0 compared) | - |" in text
 
 
+def test_a_run_with_another_learner_is_an_entry_not_a_specialist(tmp_path):
+    paths = [write_run(tmp_path, "spec_a", "token_mlp", {"a": 4.0}, specialist=0),
+             write_run(tmp_path, "ppo_a", "token_mlp", {"a": 2.0}, specialist=0)]
+    config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
+    config.algo = {"name": "ppo"}
+    OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
+    runs = [load_run(path, path.name) for path in paths]
+    assert [table.is_specialist(run) for run in runs] == [True, False]
+    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    assert (row.entry, row.specialist, row.ratio) == ("token_mlp with ppo, 1 morphologies", 4.0, 0.5)
+
+
 def test_a_run_on_the_structural_layout_is_an_entry_of_its_own(runs, tmp_path):
     path = write_run(tmp_path, "mlp_structural", "token_mlp", {"a": 3.0, "x": 2.0}, training_morphologies=2)
     config = OmegaConf.load(path / ".hydra" / "config.yaml")

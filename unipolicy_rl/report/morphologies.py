@@ -137,24 +137,33 @@ def is_model_based(run: Run) -> bool:
 
 
 SPECIALIST_POLICY = "token_mlp"  # issue 23's specialist: an MLP policy on the robot's own observation
+SPECIALIST_ALGO = "trpo"  # ... trained by SE-TRPO
+
+
+def algo_name(run: Run) -> str:
+    """The run's learner (``algo.name``; runs from before the setting are TRPO's)."""
+    return (run.config.get("algo") or {}).get("name", SPECIALIST_ALGO)
 
 
 def is_specialist(run: Run) -> bool:
     """The reference a morphology is measured against: SE-TRPO with the padded MLP on that robot
-    alone, on real data. (A model-based run, or another policy, cut to one robot is an entry of
-    its own, measured against it: the universal transformer as one robot's specialist says what
-    the architecture costs without the sharing.)"""
+    alone, on real data. (A model-based run, another policy or another learner cut to one robot is
+    an entry of its own, measured against it: the universal transformer as one robot's specialist
+    says what the architecture costs without the sharing.)"""
     return (is_grammar_run(run) and run.config["robot"].get("specialist") is not None
-            and not is_model_based(run) and run.config["policy"]["name"] == SPECIALIST_POLICY)
+            and not is_model_based(run) and run.config["policy"]["name"] == SPECIALIST_POLICY
+            and algo_name(run) == SPECIALIST_ALGO)
 
 
 def entry_name(run: Run) -> str:
-    """A run's entry: its policy, the world model it trained on (if any), the number of
-    morphologies it trained on (1 for a run cut to one robot), and its token layout where it is
-    not the default packed one (a padded MLP on another layout is another policy)."""
+    """A run's entry: its policy, the world model it trained on (if any), its learner where it is
+    not TRPO, the number of morphologies it trained on (1 for a run cut to one robot), and its
+    token layout where it is not the default packed one (a padded MLP on another layout is
+    another policy)."""
     robot = run.config["robot"]
     count = 1 if robot.get("specialist") is not None else robot.get("training_morphologies")
     source = f" on {run.config['source']['name']}" if is_model_based(run) else ""
+    source += "" if algo_name(run) == SPECIALIST_ALGO else f" with {algo_name(run)}"
     layout = robot.get("token_layout") or "packed"
     layout = "" if layout == "packed" else f", {layout} layout"
     return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}"
