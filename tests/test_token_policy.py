@@ -319,7 +319,8 @@ def test_trpo_step_on_token_data_respects_the_kl_bound(architecture):
         actor, critic = transformer()
     elif architecture == "token_transformer_slots":  # the slot vectors in the step (zero at first, moved by it)
         settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, slot_embedding=True)
-        actor, critic = make_token_transformer_actor(F, settings, -0.5, max_tokens=8), make_pooled_token_critic(F, (16,))
+        actor = make_token_transformer_actor(F, settings, -0.5, max_tokens=8)
+        critic = make_pooled_token_critic(F, (16,))
     else:
         actor, critic = make_padded_mlp_actor(F, 8, (32,), init_log_std=-0.5), make_padded_mlp_critic(F, 8, (32,))
     loss = TRPOLoss(actor, critic)

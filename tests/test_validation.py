@@ -179,7 +179,8 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "algo.advantage_groups=design"],
          r"algo.advantage_groups must be one of \['morphology'\] or null, got 'design'"),
         ([*GRAMMAR, "policy=token_mlp", "algo.advantage_groups=morphology", "algo.normalize_advantage=false"],
-         "algo.advantage_groups=morphology standardises the advantages within groups, but algo.normalize_advantage=false"),
+         "algo.advantage_groups=morphology standardises the advantages within groups, "
+         "but algo.normalize_advantage=false"),
         ([*GRAMMAR, "policy=token_mlp", "policy.critic=transformer"],
          "policy.critic=transformer takes its sizes from policy.critic_network or policy.network, and "
          "policy=token_mlp has neither"),
