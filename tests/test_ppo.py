@@ -10,19 +10,10 @@ import pytest
 import torch
 from test_token_policy import QUADRUPED, SNAKE, padded, robots, transformer, trpo_batch
 from test_train import TINY, assert_same_training_state, load_checkpoint, run_train
-from test_trpo import all_equal, collect, snapshot
+from test_trpo import _single_thread_and_seed, all_equal, collect, snapshot  # noqa: F401 (an autouse fixture)
 
 from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import ClippedStep, ClippedSurrogate, TRPOLoss
-
-
-@pytest.fixture(autouse=True)
-def _single_thread_and_seed():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    torch.manual_seed(0)
-    yield
-    torch.set_num_threads(threads)
 
 
 def flat_case(**settings):
