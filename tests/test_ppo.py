@@ -44,10 +44,19 @@ def test_a_clipped_step_improves_the_surrogate_and_reports_the_kl_it_took():
                                         "train/policy_epochs", "train/step_accepted"}
 
 
-def test_a_kl_target_stops_the_epochs_once_passed():
+def test_a_kl_target_stops_the_step_at_the_first_minibatch_past_it():
+    # 512 samples, minibatches of 64: 8 a pass. The first minibatch meets the policy that collected
+    # the batch (KL 0) and steps; the second already finds it moved past the tiny target.
     loss, flat, step = flat_case(epochs=10, target_kl=1e-8)
     result = step(flat, loss.advantage(flat))
-    assert result.accepted and result.policy_epochs == 1 and result.kl > 1e-8
+    assert result.accepted and result.policy_epochs == pytest.approx(1 / 8) and result.kl > 1.5e-8
+    # Within a pass: a target the first pass passes stops the step before the set epochs.
+    loss, flat, step = flat_case(epochs=10)
+    free_kl = step(flat, loss.advantage(flat)).kl
+    loss, flat, step = flat_case(epochs=10, target_kl=free_kl / 4)
+    stopped = step(flat, loss.advantage(flat))
+    assert 0 < stopped.policy_epochs < 10 and stopped.policy_epochs != int(stopped.policy_epochs)
+    assert stopped.kl < free_kl
     loss, flat, step = flat_case(epochs=3, target_kl=10.0)
     assert step(flat, loss.advantage(flat)).policy_epochs == 3
 

@@ -8,7 +8,9 @@ checkpoint. Why a second step: TRPO's step is sized by the Fisher matrix, and fo
 per unit of KL; PPO, which MetaMorph and ModuMorph train their transformers with, moves by many
 small first-order steps instead. TorchRL's ``ClipPPOLoss`` computes the clipped objective, the
 entropy bonus and its diagnostics; this module runs the epochs and minibatches over a batch,
-stops early past a KL target (as stable-baselines3's ``target_kl``), and, like the natural
+stops early past a KL target (as stable-baselines3's ``target_kl``: checked on every minibatch,
+so a large batch, such as an imagined one of 5,000 steps, cannot overshoot it by a whole epoch of
+steps), and, like the natural
 gradient step, leaves the actor and its optimiser as they were when anything turns non-finite.
 Log-probabilities, entropy and KL are the actor's distribution's, so a masked token policy's
 padding counts for nothing here as it does in TRPO.
@@ -39,8 +41,11 @@ class ClippedSurrogate:
         lr: Adam's learning rate for the actor.
         clip_epsilon: the probability ratio's clip range, ``[1 - eps, 1 + eps]``.
         max_grad_norm: the actor gradient's norm is clipped to this before each step.
-        target_kl: stop the epochs once the mean ``KL(old || new)`` over the batch passes this
-            (checked after each epoch); None: always run every epoch.
+        target_kl: stop the step at the first minibatch whose mean ``KL(old || new)``, with the
+            actor as it stands before that minibatch's Adam step, passes 1.5 times this, as
+            stable-baselines3 does (which estimates the KL from the sampled ratios; here it is the
+            distributions' exact KL, the one ``kl`` reports); None: always run every epoch. Without
+            it PPO's KL per update grows as the policy's spread shrinks (docs/grammar.md).
     """
 
     epochs: int = 10
@@ -75,7 +80,8 @@ class ClippedStepResult:
         surrogate_improvement: the (unclipped) surrogate advantage gained over the batch.
         entropy: mean policy entropy before the step.
         clip_fraction: share of samples whose ratio was clipped, mean over the minibatch steps.
-        policy_epochs: epochs run (fewer than set when ``target_kl`` stopped them).
+        policy_epochs: passes over the batch, a pass that ``target_kl`` stopped counted by the
+            share of its minibatches stepped (fewer than set when it stopped them).
     """
 
     accepted: bool
@@ -84,7 +90,7 @@ class ClippedStepResult:
     surrogate_improvement: float = 0.0
     entropy: float = 0.0
     clip_fraction: float = 0.0
-    policy_epochs: int = 0
+    policy_epochs: float = 0.0
 
     def as_metrics(self, prefix: str = "train/") -> dict[str, float]:
         values = asdict(self)
@@ -129,12 +135,16 @@ class ClippedStep:
             surrogate_before = float(loss.surrogate_advantage(before, data, advantage))
         saved = [p.detach().clone() for p in self.parameters]
         saved_optimizer = _copy_state(self.optimizer.state_dict())
-        count, clipped, steps, epochs = data.batch_size[0], 0.0, 0, 0
-        kl = 0.0
+        count, clipped, steps = data.batch_size[0], 0.0, 0
+        minibatches = math.ceil(count / settings.minibatch_size)
+        stop_above = None if settings.target_kl is None else 1.5 * settings.target_kl
         for _ in range(settings.epochs):
             order = torch.randperm(count, generator=self.generator)
             for start in range(0, count, settings.minibatch_size):
-                out = self.ppo(data[order[start:start + settings.minibatch_size]])
+                minibatch = data[order[start:start + settings.minibatch_size]]
+                if stop_above is not None and self._kl(minibatch) > stop_above:
+                    break
+                out = self.ppo(minibatch)
                 objective = out["loss_objective"] + (out["loss_entropy"] if "loss_entropy" in out.keys() else 0.0)
                 self.optimizer.zero_grad(set_to_none=True)
                 objective.backward()
@@ -142,13 +152,13 @@ class ClippedStep:
                 self.optimizer.step()
                 clipped += float(out["clip_fraction"])
                 steps += 1
-            epochs += 1
-            with torch.no_grad():
-                kl = float(loss.mean_kl(loss.behaviour_distribution(data), loss.policy_distribution(data)))
-            if settings.target_kl is not None and kl > settings.target_kl:
-                break
+            else:
+                continue
+            break  # (the KL target stopped the inner loop)
         with torch.no_grad():
-            surrogate_after = float(loss.surrogate_advantage(loss.policy_distribution(data), data, advantage))
+            after = loss.policy_distribution(data)
+            kl = float(loss.mean_kl(loss.behaviour_distribution(data), after))
+            surrogate_after = float(loss.surrogate_advantage(after, data, advantage))
         if not (math.isfinite(kl) and math.isfinite(surrogate_after)
                 and all(bool(torch.isfinite(p).all()) for p in self.parameters)):
             with torch.no_grad():
@@ -157,7 +167,12 @@ class ClippedStep:
             self.optimizer.load_state_dict(saved_optimizer)
             return ClippedStepResult(False, "non-finite loss, KL or parameter")
         return ClippedStepResult(True, None, kl, surrogate_after - surrogate_before, entropy, clipped / max(steps, 1),
-                                 epochs)
+                                 steps / minibatches)
+
+    def _kl(self, minibatch: TensorDictBase) -> float:
+        with torch.no_grad():
+            return float(self.loss.mean_kl(self.loss.behaviour_distribution(minibatch),
+                                           self.loss.policy_distribution(minibatch)))
 
     def _read_keys(self) -> list:
         loss = self.loss
