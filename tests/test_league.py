@@ -542,6 +542,26 @@ def test_no_two_of_many_entries_are_drawn_alike():
     assert looks[3][1] == "-" and looks[13][0] == looks[3][0] and looks[13][1] != looks[3][1]
 
 
+def test_every_league_plan_entry_runs_under_its_own_name():
+    """league.py groups runs into entries by the run name in their config: an entry whose overrides
+    leave the name another entry's (a setting on top of source=moe keeps se-moe-trpo) would have
+    its seeds counted as that entry's."""
+    import yaml
+    from hydra import compose, initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    entries = yaml.safe_load((ROOT / "benchmarks" / "league_plan.yaml").read_text())
+    try:
+        with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+            for name, entry in entries.items():
+                cfg = compose("config", overrides=[*entry["overrides"], "seed=0"], return_hydra_config=True)
+                HydraConfig.instance().set_config(cfg)  # run_name interpolates Hydra's choices
+                assert OmegaConf.select(cfg, "run_name") == name, f"{name}: add run_name={name} to its overrides"
+    finally:
+        HydraConfig.instance().cfg = None  # (a process-wide singleton; no other test should see this one)
+
+
 @pytest.mark.parametrize("plan", ["league_plan.yaml", "morphology_plan.yaml"])
 def test_every_entry_of_the_queue_plans_composes_and_passes_validation(plan):
     """A typo in a plan's overrides would fail a run hours into a queue; here it fails at once."""
