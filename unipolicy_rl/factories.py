@@ -235,6 +235,7 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
         loss, trust_region=None if ppo else make_trust_region(cfg), critic_lr=algo.critic_lr,
         critic_epochs=algo.critic_epochs, critic_minibatch_size=algo.critic_minibatch_size, generator=generator,
         clipped_step=ClippedStep(loss, actor, clipped_surrogate(cfg), generator) if ppo else None,
+        critic_fit=algo.get("critic_fit", "inline"),
     )
     return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor), statistics,
                        algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)

@@ -30,6 +30,7 @@ from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
 from unipolicy_rl.envs.tokens import MORPHOLOGY
 from unipolicy_rl.networks import ACTIVATIONS
+from unipolicy_rl.objectives.updater import CRITIC_FITS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
 from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, token_critic
 
@@ -148,6 +149,7 @@ _ON_POLICY_RULES: dict[str, Callable[[object], str | None]] = {
     "algo.critic_lr": _number(0.0, INF, low_open=True, high_open=True),
     "algo.critic_epochs": POSITIVE,
     "algo.critic_minibatch_size": POSITIVE,
+    "algo.critic_fit": _one_of(set(CRITIC_FITS)),
     "algo.max_consecutive_skips": POSITIVE,
     "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
 }
@@ -246,6 +248,16 @@ def _model_source_groups(cfg: DictConfig) -> str | None:
     return None
 
 
+def _lagged_critic_without_real_updates(cfg: DictConfig) -> str | None:
+    """A lagged critic's pending fit is applied at the epoch's normaliser refresh; a policy update on
+    the real batch comes before it and would read the critic half-way (and a resumed run would not)."""
+    if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit != "inline" and cfg.source.kind == "model"
+            and cfg.imagination.train_on_real):
+        return (f"algo.critic_fit={cfg.algo.critic_fit} with imagination.train_on_real=true: the update on each "
+                f"real batch would read a critic whose last fit is still pending; use algo.critic_fit=inline")
+    return None
+
+
 # keys -> rule, for the plain values checked against each other; run after the keys' own rules,
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
@@ -257,6 +269,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot", "algo.name"): _grammar_learns_on_policy,
     ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
+    ("algo", "source"): _lagged_critic_without_real_updates,
 }
 
 

@@ -104,24 +104,28 @@ class TRPOLearner:
     def refresh_observation_normalizer(self, batch: TensorDictBase) -> dict[str, float]:
         """The trust region does not bound what a refresh does to the policy: its KL (on the
         batch's observations, with their masks) is logged."""
+        self.updater.finish_critic_fit()  # (algo.critic_fit lagged or process: the refresh re-expresses the critic)
         probe = batch.select(*self.observation_keys).reshape(-1)
         with torch.no_grad():
             before = self.loss.policy_distribution(self.normalizer(probe.clone()))
             self.statistics.update(*(probe.get(key) for key in self.statistics_keys))
             refresh_normalizer(self.statistics, self.normalizer, (self.actor, self.critic), self.normalizer_refresh)
             after = self.loss.policy_distribution(self.normalizer(probe.clone()))
-            return {"train/refresh_kl": self.loss.mean_kl(before, after).item()}
+        self.updater.critic_changed()
+        return {"train/refresh_kl": self.loss.mean_kl(before, after).item()}
 
     def policy_state(self) -> dict:
         return policy_state(self.actor, self.statistics)
 
     def state_dict(self) -> dict:
+        self.updater.finish_critic_fit()
+        critic_optimizer, critic_generator = self.updater.critic_optimizer_state()
         state = {
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
             "observation_statistics": self.statistics.state_dict(),
-            "critic_optimizer": self.updater.critic_optimizer.state_dict(),
-            "critic_generator": self.updater.generator.get_state(),
+            "critic_optimizer": critic_optimizer,
+            "critic_generator": critic_generator,
         }
         if self.updater.clipped_step is not None:
             state["clipped_step"] = self.updater.clipped_step.state_dict()
@@ -132,8 +136,9 @@ class TRPOLearner:
         self.critic.load_state_dict(state["critic"])
         self.statistics.load_state_dict(state["observation_statistics"])
         self.statistics.copy_to(self.normalizer)
-        self.updater.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.updater.generator.set_state(state["critic_generator"])
+        self.updater.finish_critic_fit()
+        self.updater.load_critic_optimizer_state(state["critic_optimizer"], state["critic_generator"])
+        self.updater.critic_changed()
         if self.updater.clipped_step is not None:
             if "clipped_step" not in state:
                 raise KeyError("the checkpoint has no PPO policy optimizer ('clipped_step'): it was not saved by "

@@ -8,10 +8,13 @@ from tensordict import TensorDictBase
 
 from unipolicy_rl.objectives.clipped_step import ClippedStep, ClippedStepResult
 from unipolicy_rl.objectives.critic_fit import CriticFitResult, explained_variance, fit_critic, make_critic_optimizer
+from unipolicy_rl.objectives.critic_process import CriticFitProcess
 from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
-__all__ = ["TRPOUpdater"]
+__all__ = ["CRITIC_FITS", "TRPOUpdater"]
+
+CRITIC_FITS = ("inline", "lagged", "process")
 
 
 class TRPOUpdater:
@@ -35,6 +38,15 @@ class TRPOUpdater:
     ``lr=1e-3``, 10 epochs of minibatches of 128) follow stable-baselines3-contrib. With
     ``clipped_step`` (a :class:`ClippedStep` on the same loss) the policy moves by PPO's clipped
     epochs instead (``algo=ppo``) and ``trust_region`` is not used; the rest of the update is the same.
+
+    ``critic_fit`` says when the critic is fitted: ``inline`` (at the end of its own update),
+    ``lagged`` (at the end of the next update, after that update's policy step, so each update's
+    advantages come from the critic fitted through the update before last), or ``process`` (the
+    same learning as ``lagged``, the fit on a forked process beside the next update:
+    :class:`~unipolicy_rl.objectives.critic_process.CriticFitProcess`). With either of the last
+    two a fit is pending between updates; :meth:`finish_critic_fit` applies it (before anything
+    reads or changes the critic outside an update: a normaliser refresh, a checkpoint), and an
+    update reports the metrics of the fit it finished, the one of the batch before.
     """
 
     def __init__(
@@ -47,9 +59,12 @@ class TRPOUpdater:
         critic_minibatch_size: int = 128,
         generator: torch.Generator | None = None,
         clipped_step: ClippedStep | None = None,
+        critic_fit: str = "inline",
     ) -> None:
         if clipped_step is not None and clipped_step.loss is not loss_module:
             raise ValueError("clipped_step must be built on the updater's loss_module")
+        if critic_fit not in CRITIC_FITS:
+            raise ValueError(f"critic_fit must be one of {CRITIC_FITS}, got {critic_fit!r}")
         self.loss_module = loss_module
         self.clipped_step = clipped_step
         self.trust_region = trust_region or TrustRegion()
@@ -60,6 +75,11 @@ class TRPOUpdater:
         self.last_step: TRPOStepResult | ClippedStepResult | None = None
         self.last_critic_fit: CriticFitResult | None = None
         self.consecutive_skips = 0
+        self.critic_fit = critic_fit
+        self._lagged_batch: TensorDictBase | None = None  # critic_fit=lagged: the batch whose fit is pending
+        self.critic_process = (CriticFitProcess(loss_module, self.critic_optimizer, critic_epochs,
+                                                critic_minibatch_size, generator)
+                               if critic_fit == "process" else None)
 
     @property
     def skip_reasons(self) -> list[str]:
@@ -86,16 +106,53 @@ class TRPOUpdater:
         metrics["train/explained_variance"] = explained_variance(
             flat.get(loss.tensor_keys.value), flat.get(loss.tensor_keys.value_target)
         )
-        critic_fit = fit_critic(
-            loss,
-            flat,
-            self.critic_optimizer,
-            self.critic_epochs,
-            self.critic_minibatch_size,
-            self.generator,
-        )
+        if self.critic_fit == "inline":
+            critic_fit = self._fit(flat)
+        else:  # the previous batch's fit, then this one's started (or kept) until the next update
+            critic_fit = self.finish_critic_fit() or CriticFitResult(True, None)
+            if self.critic_process is not None:
+                self.critic_process.start_fit(flat)
+            else:
+                self._lagged_batch = flat
         self.last_critic_fit = critic_fit
         metrics.update(critic_fit.as_metrics("train/"))
         self.consecutive_skips = 0 if step.accepted and critic_fit.fitted else self.consecutive_skips + 1
         metrics["train/consecutive_skips"] = float(self.consecutive_skips)
         return metrics
+
+    def finish_critic_fit(self) -> CriticFitResult | None:
+        """Applies the pending critic fit (``critic_fit`` lagged or process), if any; its result."""
+        if self.critic_process is not None and self.critic_process.pending:
+            return self.critic_process.finish()
+        if self._lagged_batch is not None:
+            batch, self._lagged_batch = self._lagged_batch, None
+            return self._fit(batch)
+        return None
+
+    def critic_changed(self) -> None:
+        """Tells the fit's process that the critic's weights were changed outside a fit."""
+        if self.critic_process is not None:
+            self.critic_process.push_weights()
+
+    def critic_optimizer_state(self) -> tuple[dict, torch.Tensor | None]:
+        """The critic's Adam state and the fit generator's state (wherever the fit runs)."""
+        if self.critic_process is not None:
+            return self.critic_process.optimizer_state()
+        return self.critic_optimizer.state_dict(), None if self.generator is None else self.generator.get_state()
+
+    def load_critic_optimizer_state(self, optimizer_state: dict, generator_state: torch.Tensor | None) -> None:
+        if self.critic_process is not None:
+            self.critic_process.load_optimizer_state(optimizer_state, generator_state)
+            return
+        self.critic_optimizer.load_state_dict(optimizer_state)
+        if generator_state is not None:
+            self.generator.set_state(generator_state)
+
+    def close(self) -> None:
+        """Ends the fit's process, if one runs."""
+        if self.critic_process is not None:
+            self.critic_process.close()
+
+    def _fit(self, flat: TensorDictBase) -> CriticFitResult:
+        return fit_critic(self.loss_module, flat, self.critic_optimizer, self.critic_epochs,
+                          self.critic_minibatch_size, self.generator)

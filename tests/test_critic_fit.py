@@ -1,0 +1,91 @@
+"""When the critic is fitted (``algo.critic_fit``): inline, one update late, or one update late on a
+forked process. The process learns exactly what the lagged fit does, the lag is a real change
+(flushed after every update it is the inline fit again), and a run with the fit on a process
+resumes exactly."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_train import MOE_TINY, assert_same_training_state, load_checkpoint, run_train
+from test_trpo import _single_thread_and_seed, all_equal, collect, snapshot  # noqa: F401 (an autouse fixture)
+
+from unipolicy_rl.networks import make_actor, make_critic
+from unipolicy_rl.objectives import TRPOLoss, TRPOUpdater
+
+
+def updater(critic_fit: str, seed: int = 0) -> TRPOUpdater:
+    torch.manual_seed(seed)
+    actor, critic = make_actor(4, 2, (16, 16)), make_critic(4, (16, 16))
+    loss = TRPOLoss(actor, critic)
+    return TRPOUpdater(loss, critic_epochs=2, critic_minibatch_size=32,
+                       generator=torch.Generator().manual_seed(seed), critic_fit=critic_fit)
+
+
+def batches(count: int) -> list:
+    generator = torch.Generator().manual_seed(1)
+    return [torch.randn(4, 32, 4, generator=generator) for _ in range(count)]
+
+
+def train(one: TRPOUpdater, observations: list, flush_each: bool = False) -> list[torch.Tensor]:
+    try:
+        for obs in observations:
+            torch.manual_seed(2)  # the same actions from the same policy
+            one.update(collect(one.loss_module, obs, done_every=16))
+            if flush_each:
+                one.finish_critic_fit()
+        one.finish_critic_fit()
+        return snapshot([*one.loss_module.actor_parameters(), *one.loss_module.critic_parameters()])
+    finally:
+        one.close()
+
+
+def test_the_fit_on_a_process_learns_exactly_what_the_lagged_fit_does_and_the_lag_is_real():
+    data = batches(4)
+    lagged = train(updater("lagged"), data)
+    on_a_process = train(updater("process"), data)
+    inline = train(updater("inline"), data)
+    assert all_equal(on_a_process, lagged)
+    assert not all_equal(lagged, inline)  # each update's advantages came from an older critic
+    # Applied after every update, the pending fit is the inline fit again.
+    assert all_equal(train(updater("lagged"), data, flush_each=True), inline)
+
+
+def test_a_pending_fit_is_applied_before_its_optimizer_state_is_read_and_bad_modes_are_named():
+    one = updater("process")
+    try:
+        one.update(collect(one.loss_module, batches(1)[0], done_every=16))
+        assert one.critic_process.pending
+        with pytest.raises(RuntimeError, match="still pending"):
+            one.critic_process.optimizer_state()
+        assert one.finish_critic_fit().fitted and not one.critic_process.pending
+        state, generator_state = one.critic_optimizer_state()
+        assert state["state"] and generator_state is not None  # the child's Adam state, after its fit
+        twin = updater("inline")
+        twin.load_critic_optimizer_state(state, generator_state)
+        assert torch.equal(twin.generator.get_state(), generator_state)
+    finally:
+        one.close()
+    with pytest.raises(ValueError, match="critic_fit must be one of .* got 'later'"):
+        updater("later")
+
+
+def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_path):
+    moe = [*MOE_TINY, "algo.critic_fit=process"]
+    straight = run_train(*moe, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
+    assert straight.returncode == 0, straight.stderr
+    first = run_train(*moe, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
+    assert first.returncode == 0, first.stderr
+    resumed = run_train(*moe, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    assert resumed.returncode == 0, resumed.stderr
+    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["critic_fit"] == "process"
+    assert_same_training_state(a, b, world_model=True)
+    lagged = run_train(*MOE_TINY, "algo.critic_fit=lagged", "epochs=3", f"hydra.run.dir={tmp_path / 'lagged'}")
+    assert lagged.returncode == 0, lagged.stderr
+    assert_same_training_state(a, load_checkpoint(tmp_path / "lagged" / "checkpoint.pt"), world_model=True)
+    bad = run_train(*MOE_TINY, "algo.critic_fit=lagged", "imagination.train_on_real=true",
+                    f"hydra.run.dir={tmp_path / 'bad'}")
+    assert bad.returncode != 0 and "algo.critic_fit=lagged with imagination.train_on_real=true" in bad.stderr
