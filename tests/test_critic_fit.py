@@ -89,3 +89,5 @@ def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_
     bad = run_train(*MOE_TINY, "algo.critic_fit=lagged", "imagination.train_on_real=true",
                     f"hydra.run.dir={tmp_path / 'bad'}")
     assert bad.returncode != 0 and "algo.critic_fit=lagged with imagination.train_on_real=true" in bad.stderr
+    bad = run_train(*MOE_TINY, "algo=ppo", "algo.critic_fit=process", f"hydra.run.dir={tmp_path / 'bad_ppo'}")
+    assert bad.returncode != 0 and "algo.critic_fit=process with algo=ppo" in bad.stderr

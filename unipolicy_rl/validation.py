@@ -250,7 +250,11 @@ def _model_source_groups(cfg: DictConfig) -> str | None:
 
 def _lagged_critic_without_real_updates(cfg: DictConfig) -> str | None:
     """A lagged critic's pending fit is applied at the epoch's normaliser refresh; a policy update on
-    the real batch comes before it and would read the critic half-way (and a resumed run would not)."""
+    the real batch comes before it and would read the critic half-way (and a resumed run would not).
+    The fit's process owns the fit's generator, which PPO's step shares."""
+    if cfg.algo.name == "ppo" and cfg.algo.critic_fit == "process":
+        return ("algo.critic_fit=process with algo=ppo: PPO's minibatch shuffles draw from the critic fit's generator, "
+                "which the fit's process takes over; use algo.critic_fit=inline or lagged")
     if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit != "inline" and cfg.source.kind == "model"
             and cfg.imagination.train_on_real):
         return (f"algo.critic_fit={cfg.algo.critic_fit} with imagination.train_on_real=true: the update on each "

@@ -65,6 +65,10 @@ class TRPOUpdater:
             raise ValueError("clipped_step must be built on the updater's loss_module")
         if critic_fit not in CRITIC_FITS:
             raise ValueError(f"critic_fit must be one of {CRITIC_FITS}, got {critic_fit!r}")
+        if critic_fit == "process" and clipped_step is not None and generator is not None \
+                and clipped_step.generator is generator:
+            raise ValueError("critic_fit='process' takes the critic fit's generator to its own process, and "
+                             "clipped_step draws from the same one: give the clipped step a generator of its own")
         self.loss_module = loss_module
         self.clipped_step = clipped_step
         self.trust_region = trust_region or TrustRegion()
