@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_train import MOE_TINY, assert_same_training_state, load_checkpoint, run_train
+from test_train import MOE_TINY, assert_same_training_state, load_checkpoint, run_train, straight_and_resumed
 from test_trpo import _single_thread_and_seed, all_equal, collect, snapshot  # noqa: F401 (an autouse fixture)
 
 from unipolicy_rl.networks import make_actor, make_critic
@@ -71,16 +71,7 @@ def test_a_pending_fit_is_applied_before_its_optimizer_state_is_read_and_bad_mod
 
 
 def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_path):
-    moe = [*MOE_TINY, "algo.critic_fit=process"]
-    straight = run_train(*moe, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*moe, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*moe, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b = straight_and_resumed(tmp_path, [*MOE_TINY, "algo.critic_fit=process"], first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["critic_fit"] == "process"
     assert_same_training_state(a, b, world_model=True)
     lagged = run_train(*MOE_TINY, "algo.critic_fit=lagged", "epochs=3", f"hydra.run.dir={tmp_path / 'lagged'}")

@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 from test_token_policy import QUADRUPED, SNAKE, padded, robots, transformer, trpo_batch
-from test_train import TINY, assert_same_training_state, load_checkpoint, run_train
+from test_train import TINY, assert_same_training_state, run_train, straight_and_resumed
 from test_trpo import _single_thread_and_seed, all_equal, collect, snapshot  # noqa: F401 (an autouse fixture)
 
 from unipolicy_rl.networks import make_actor, make_critic
@@ -106,15 +106,7 @@ def test_bad_clipped_step_settings_raise_naming_the_value(setting, value):
 
 def test_a_ppo_run_trains_and_resumes_exactly_and_bad_settings_are_named(tmp_path):
     ppo = [*TINY, "algo=ppo", "algo.policy_epochs=2", "algo.policy_minibatch_size=8"]
-    straight = run_train(*ppo, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*ppo, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*ppo, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b = straight_and_resumed(tmp_path, ppo, first=2, total=3)
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["name"] == "ppo"
     assert_same_training_state(a, b)
     assert a["learner"]["clipped_step"]["optimizer"]["state"]  # the actor's Adam state is saved ...

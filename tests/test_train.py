@@ -83,6 +83,20 @@ def test_unknown_override_is_a_clear_error():
     assert "nope" in result.stderr
 
 
+def straight_and_resumed(tmp_path: Path, overrides: list[str], first: int, total: int) -> tuple[dict, dict]:
+    """The checkpoints of a run of ``total`` epochs and of one stopped after ``first`` and resumed to
+    ``total`` (folders ``straight``, ``first``, ``resumed`` under ``tmp_path``); each run must succeed."""
+    straight = run_train(*overrides, f"epochs={total}", f"hydra.run.dir={tmp_path / 'straight'}")
+    assert straight.returncode == 0, straight.stderr
+    stopped = run_train(*overrides, f"epochs={first}", f"hydra.run.dir={tmp_path / 'first'}")
+    assert stopped.returncode == 0, stopped.stderr
+    resumed = run_train(*overrides, f"epochs={total}", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
+                        f"hydra.run.dir={tmp_path / 'resumed'}")
+    assert resumed.returncode == 0, resumed.stderr
+    return (load_checkpoint(tmp_path / "straight" / "checkpoint.pt"),
+            load_checkpoint(tmp_path / "resumed" / "checkpoint.pt"))
+
+
 def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
     straight = run_train(*TINY, "epochs=4", f"hydra.run.dir={tmp_path / 'straight'}")
     assert straight.returncode == 0, straight.stderr
