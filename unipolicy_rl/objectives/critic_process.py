@@ -36,7 +36,8 @@ class CriticFitProcess:
     ``start_fit(batch)`` sends a batch (its critic inputs and value targets) and returns at once;
     ``finish()`` waits for that fit, copies the fitted weights into the parent's critic and returns
     the :class:`CriticFitResult`. ``push_weights()`` sends the parent's critic weights to the child;
-    ``optimizer_state()`` / ``load_optimizer_state()`` move the Adam state and the generator's.
+    ``optimizer_state()`` / ``load_optimizer_state()`` move the Adam state and the generator's once
+    the child has started.
 
     Args:
         loss: the updater's loss (its critic is the one fitted).
@@ -61,7 +62,7 @@ class CriticFitProcess:
         if self.pending:
             raise RuntimeError("a critic fit is still pending: finish() it first")
         keys = self.loss.tensor_keys
-        critic_batch = batch.select(*self.loss.critic_network.in_keys, keys.value_target).clone()
+        critic_batch = batch.select(*self.loss.critic_network.in_keys, keys.value_target)  # (sending copies it)
         self._start()
         self._connection.send(("fit", critic_batch))
         self.pending = True
@@ -82,17 +83,11 @@ class CriticFitProcess:
             self._call("weights", [p.detach().clone() for p in self.loss.critic_parameters()])
 
     def optimizer_state(self) -> tuple[dict, torch.Tensor | None]:
-        """The critic optimizer's ``state_dict`` and the generator's state, wherever they live now."""
-        if not self.started:
-            return self.optimizer.state_dict(), None if self.generator is None else self.generator.get_state()
+        """The child's critic optimizer ``state_dict`` and generator state (before the child starts,
+        the parent's own are the ones it will inherit)."""
         return self._call("state", None)
 
     def load_optimizer_state(self, optimizer_state: dict, generator_state: torch.Tensor | None) -> None:
-        if not self.started:  # the child, forked later, inherits them
-            self.optimizer.load_state_dict(optimizer_state)
-            if generator_state is not None:
-                self.generator.set_state(generator_state)
-            return
         self._call("load_state", (optimizer_state, generator_state))
 
     def close(self) -> None:

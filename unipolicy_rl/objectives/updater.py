@@ -139,13 +139,13 @@ class TRPOUpdater:
             self.critic_process.push_weights()
 
     def critic_optimizer_state(self) -> tuple[dict, torch.Tensor | None]:
-        """The critic's Adam state and the fit generator's state (wherever the fit runs)."""
-        if self.critic_process is not None:
+        """The critic's Adam state and the fit generator's state (the fit's process has them once it runs)."""
+        if self.critic_process is not None and self.critic_process.started:
             return self.critic_process.optimizer_state()
         return self.critic_optimizer.state_dict(), None if self.generator is None else self.generator.get_state()
 
     def load_critic_optimizer_state(self, optimizer_state: dict, generator_state: torch.Tensor | None) -> None:
-        if self.critic_process is not None:
+        if self.critic_process is not None and self.critic_process.started:  # (one not yet forked inherits these)
             self.critic_process.load_optimizer_state(optimizer_state, generator_state)
             return
         self.critic_optimizer.load_state_dict(optimizer_state)
