@@ -32,6 +32,7 @@ from unipolicy_rl.token_networks import (
     TokenEncoder,
     TokenTransformerSettings,
     attention_blocked,
+    make_modular_actor,
     make_padded_mlp_actor,
     make_padded_mlp_critic,
     make_pooled_token_critic,
@@ -129,6 +130,41 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
         torch.testing.assert_close(big_dist.entropy(), small_dist.entropy())
         torch.testing.assert_close(critic(bigger.clone())["state_value"], critic(data.clone())["state_value"],
                                    atol=1e-5, rtol=1e-5)
+
+
+def test_padding_leaves_the_modular_policy_unchanged_and_a_reordered_body_acts_the_same():
+    actor = make_modular_actor(F, (16, 16), init_log_std=-0.5)
+    with torch.no_grad():  # a policy away from its near-zero initial mean
+        for param in actor.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+    data = collect(actor, robots([SNAKE, QUADRUPED], length=7, batch=6))
+    bigger = padded(data, 12)
+    with torch.no_grad():
+        small, big = actor.get_dist_params(data.clone()), actor.get_dist_params(bigger.clone())
+    real = data[ACTION_MASK]
+    assert small["loc"][real].abs().max() > 0.05  # not trivially zero
+    torch.testing.assert_close(big["loc"][..., :7][real], small["loc"][real], atol=1e-5, rtol=1e-5)
+
+    # The quadruped with its links in another slot order (parents renumbered): each link's joint
+    # gets the same mean wherever it sits, as no weight belongs to a slot.
+    order = torch.tensor([0, 2, 1, 4, 3, 6, 5])  # new slot -> old slot; each leg's second link still after its hip
+    quadruped = data[1:2].clone()
+    moved = quadruped.clone()
+    old_to_new = torch.argsort(order)
+    moved[TOKENS] = quadruped[TOKENS][:, order]
+    moved[TOKEN_MASK], moved[ACTION_MASK] = quadruped[TOKEN_MASK][:, order], quadruped[ACTION_MASK][:, order]
+    parents = quadruped[TOKEN_PARENT][:, order]
+    moved[TOKEN_PARENT] = torch.where(parents >= 0, old_to_new[parents.clamp(min=0)], parents)
+    with torch.no_grad():
+        loc, moved_loc = actor.get_dist_params(quadruped)["loc"], actor.get_dist_params(moved)["loc"]
+    torch.testing.assert_close(moved_loc[:, old_to_new], loc, atol=1e-5, rtol=1e-5)
+    # ... where the padded MLP, whose weights belong to slots, acts differently.
+    mlp = make_padded_mlp_actor(F, 7, (16,), init_log_std=-0.5)
+    with torch.no_grad():
+        for param in mlp.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+        mlp_loc, mlp_moved = mlp.get_dist_params(quadruped)["loc"], mlp.get_dist_params(moved)["loc"]
+    assert (mlp_moved[:, old_to_new] - mlp_loc)[quadruped[ACTION_MASK]].abs().max() > 1e-3
 
 
 def test_slot_vectors_let_a_body_move_one_slot_alone_and_padding_still_changes_nothing():
@@ -313,7 +349,8 @@ def test_graph_attention_sees_only_parent_children_and_itself():
 
 
 # ------------------------------------------------------------------------- TRPO on tokens
-@pytest.mark.parametrize("architecture", ["token_transformer", "token_transformer_slots", "token_mlp"])
+@pytest.mark.parametrize("architecture", ["token_transformer", "token_transformer_slots", "token_mlp",
+                                          "token_modular"])
 def test_trpo_step_on_token_data_respects_the_kl_bound(architecture):
     if architecture == "token_transformer":
         actor, critic = transformer()
@@ -321,6 +358,8 @@ def test_trpo_step_on_token_data_respects_the_kl_bound(architecture):
         settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, slot_embedding=True)
         actor = make_token_transformer_actor(F, settings, -0.5, max_tokens=8)
         critic = make_pooled_token_critic(F, (16,))
+    elif architecture == "token_modular":
+        actor, critic = make_modular_actor(F, (32, 32), init_log_std=-0.5), make_pooled_token_critic(F, (32,))
     else:
         actor, critic = make_padded_mlp_actor(F, 8, (32,), init_log_std=-0.5), make_padded_mlp_critic(F, 8, (32,))
     loss = TRPOLoss(actor, critic)
@@ -562,6 +601,7 @@ def test_token_statistics_and_normaliser_ignore_padding():
     ("token_transformer", "transformer", []), ("token_transformer", "pooled", []), ("token_mlp", "padded_mlp", []),
     ("token_transformer", "pooled", ["policy.network.head_hidden=[8]", "policy.network.head_reads_token=true"]),
     ("token_transformer", "pooled", ["policy.network.head_reads_token=true"]),
+    ("token_modular", "pooled", []),
 ])
 def test_a_preserving_refresh_leaves_token_networks_unchanged(architecture, critic, overrides):
     cfg = policy_config(architecture, f"policy.critic={critic}", *overrides)
@@ -608,7 +648,7 @@ def test_policy_group_composes_and_builds_each_architecture():
     data = robots([SNAKE, QUADRUPED], length=7, batch=4)
     for name, overrides in [("token_transformer", ["policy.network.graph_attention=true"]),
                             ("token_transformer", ["policy.network.slot_embedding=true", "policy.critic=transformer"]),
-                            ("token_mlp", [])]:
+                            ("token_mlp", []), ("token_modular", [])]:
         cfg = policy_config(name, *overrides)
         actor, critic = make_token_actor_critic(cfg, F, 7)
         with torch.no_grad():

@@ -3,8 +3,8 @@
 ``policy.name`` (``conf/policy/``) chooses the architecture: ``mlp``, the flat observation
 through ``algo``'s MLPs (the default, and every run before the group existed); or, for robots of
 any morphology observed as padded link tokens (:mod:`unipolicy_rl.envs.tokens`),
-``token_transformer`` or its baseline ``token_mlp`` (:mod:`unipolicy_rl.token_networks`), built
-by :func:`make_token_actor_critic` behind a :func:`make_token_norm`; ``policy.critic`` chooses
+``token_transformer``, its baseline ``token_mlp`` or ``token_modular`` (one controller shared by
+every joint; :mod:`unipolicy_rl.token_networks`), built by :func:`make_token_actor_critic` behind a :func:`make_token_norm`; ``policy.critic`` chooses
 the token policy's critic (:data:`TOKEN_CRITICS`).
 
 Kept apart from the training stack (collectors, world models, learners), so loading a policy to
@@ -22,6 +22,7 @@ from torchrl.modules import ValueOperator
 
 from unipolicy_rl.networks import make_actor, make_critic, make_tanh_actor
 from unipolicy_rl.token_networks import (
+    make_modular_actor,
     make_padded_mlp_actor,
     make_padded_mlp_critic,
     make_pooled_token_critic,
@@ -35,7 +36,7 @@ NORMALIZED_TOKENS = "tokens_norm"
 # ``policy.name``: what the networks read. ``mlp`` reads the flat ``observation``; the others
 # read link tokens and drive the padded, masked action of unipolicy_rl.envs.tokens.
 FLAT_POLICIES = ("mlp",)
-TOKEN_POLICIES = ("token_transformer", "token_mlp")
+TOKEN_POLICIES = ("token_transformer", "token_mlp", "token_modular")
 # ``algo.name`` of the on-policy learners, which train this module's Gaussian policies (the flat
 # MLP and the token policies) with GAE and a critic fit: TRPO's natural-gradient step or PPO's
 # clipped epochs. The off-policy learners build their own tanh-Gaussian actor.
@@ -46,7 +47,8 @@ ON_POLICY_ALGOS = ("trpo", "ppo")
 # padded tokens flattened through ``algo.critic_hidden`` (its weights tied to the padding).
 TOKEN_CRITICS = ("transformer", "pooled", "padded_mlp")
 # The critic each token policy had before ``policy.critic`` existed: a config (a checkpoint's)
-# without the key builds it, so such a run resumes into the critic its weights belong to.
+# without the key builds it, so such a run resumes into the critic its weights belong to
+# (token_modular came after the setting: its yaml names its critic, pooled when a config does not).
 CRITIC_BEFORE_THE_SETTING = {"token_transformer": "transformer", "token_mlp": "padded_mlp"}
 
 
@@ -65,7 +67,7 @@ def token_critic(cfg: DictConfig) -> str:
     if architecture not in TOKEN_POLICIES:
         raise ValueError(f"policy.critic is a token policy's setting ({TOKEN_POLICIES}), not policy={architecture}'s")
     name = OmegaConf.select(cfg, "policy.critic", default=None)
-    name = CRITIC_BEFORE_THE_SETTING[architecture] if name is None else name
+    name = CRITIC_BEFORE_THE_SETTING.get(architecture, "pooled") if name is None else name
     if name not in TOKEN_CRITICS:
         raise ValueError(f"policy.critic must be one of {TOKEN_CRITICS}, got {name!r}")
     if name == "transformer" and _critic_transformer_settings(cfg) is None:
@@ -137,13 +139,13 @@ def make_token_norm(token_features: int, loc: torch.Tensor | None = None,
 
 
 def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: int):
-    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer`` or ``token_mlp``, and
+    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer``, ``token_mlp`` or ``token_modular``, and
     ``policy.critic``), reading the normalised tokens, the token mask and parents, and (the
     actor) the action mask.
 
     ``token_features`` (``F``) and ``max_tokens`` (``L``, the padding) come from the env's specs.
-    The transformer's sizes are ``cfg.policy.network``; the padded MLP takes ``algo``'s hidden
-    sizes and activation; both start at ``algo.init_log_std``. The critic: :func:`make_token_critic`.
+    The transformer's sizes are ``cfg.policy.network``; the padded MLP and the modular policy take
+    ``algo``'s actor hidden sizes and activation; both start at ``algo.init_log_std``. The critic: :func:`make_token_critic`.
     """
     architecture = policy_architecture(cfg)
     if architecture not in TOKEN_POLICIES:
@@ -156,6 +158,9 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
     if architecture == "token_transformer":
         actor = make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,
                                              max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
+    elif architecture == "token_modular":
+        actor = make_modular_actor(token_features, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
+                                   tokens_key=NORMALIZED_TOKENS)
     else:
         actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
                                       algo.init_log_std, tokens_key=NORMALIZED_TOKENS)

@@ -56,6 +56,7 @@ __all__ = [
     "TokenEncoder",
     "TokenTransformerSettings",
     "attention_blocked",
+    "make_modular_actor",
     "make_padded_mlp_actor",
     "make_padded_mlp_critic",
     "make_pooled_token_critic",
@@ -364,6 +365,59 @@ class _PaddedMLPActorNetwork(nn.Module):
         return self.std(self.mlp(tokens, token_mask))
 
 
+class _ModularActorNetwork(nn.Module):
+    """Tokens -> per-slot ``loc`` from one controller shared by every joint (Shared Modular
+    Policies, NerveNet): each real token is encoded by one MLP (``hidden_sizes``), and each joint's
+    mean comes from one head MLP (the same sizes) on its own token, its parent's encoding, the mean
+    of its children's encodings and the whole body's masked mean and max of encodings.
+
+    Why: the padded MLP ties its weights to slots, so a robot it never saw is read through
+    weights that other bodies' parts trained; the transformer shares its weights across joints
+    but learns slowly here. This network shares every weight across joints and robots, as the
+    transformer does, at the cost of an MLP per token: a new body is read the way its parts were,
+    one link away from each joint and through the body's summary beyond. Padding never reaches a
+    real slot (it is zeroed, left out of both poolings, and no real link is its parent or child).
+    """
+
+    def __init__(self, token_features: int, hidden_sizes: Sequence[int], activation: str,
+                 init_log_std: float) -> None:
+        super().__init__()
+        if not (isinstance(token_features, int) and token_features >= 1):
+            raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
+        hidden_sizes = tuple(hidden_sizes)
+        if not hidden_sizes:
+            raise ValueError("the modular policy needs at least one hidden size (the width of each token's "
+                             "encoding), got hidden_sizes=()")
+        width = hidden_sizes[-1]
+        encoder = make_mlp(token_features, width, hidden_sizes[:-1], activation, output_gain=math.sqrt(2.0))
+        self.encoder = nn.Sequential(*encoder, ACTIVATIONS[activation]())
+        # The token's own features come first, so a normaliser refresh re-expresses the leading columns.
+        self.head = make_mlp(token_features + 4 * width, 1, hidden_sizes, activation, output_gain=0.01)
+        self.std = SharedLogStd(init_log_std)
+
+    def forward(self, tokens, token_mask, token_parent):
+        real = token_mask.unsqueeze(-1)
+        tokens = torch.where(real, tokens, torch.zeros((), dtype=tokens.dtype))
+        encoded = torch.where(real, self.encoder(tokens), torch.zeros((), dtype=tokens.dtype))  # [*, L, W]
+        has_parent = ((token_parent >= 0) & token_mask).unsqueeze(-1)
+        parent_index = token_parent.clamp(min=0).unsqueeze(-1).expand_as(encoded)
+        parent = torch.where(has_parent, encoded.gather(-2, parent_index), torch.zeros((), dtype=tokens.dtype))
+        # Each child's encoding added at its parent's slot (a root or padding child adds nothing).
+        child_sum = torch.zeros_like(encoded).scatter_add(-2, parent_index, torch.where(has_parent, encoded, 0.0))
+        child_count = torch.zeros_like(encoded[..., :1]).scatter_add(-2, parent_index[..., :1],
+                                                                      has_parent.to(tokens.dtype))
+        children = child_sum / child_count.clamp(min=1.0)
+        body = torch.cat([_masked_mean(encoded, token_mask), _masked_max(encoded, token_mask)], -1)
+        body = body.unsqueeze(-2).expand(*encoded.shape[:-1], body.shape[-1])
+        return self.std(self.head(torch.cat([tokens, parent, children, body], -1)).squeeze(-1))
+
+    def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
+        """The encoder's first layer and the head's token columns, for a moved normaliser: every
+        real slot's action mean stays the same."""
+        reexpress_linear(self.encoder[0], old_loc, old_scale, new_loc, new_scale)
+        reexpress_weights(self.head[0].weight, self.head[0].bias, old_loc, old_scale, new_loc, new_scale)
+
+
 def _gaussian_actor(network: nn.Module, in_keys: list[str], action_spec: TensorSpec | None) -> ProbabilisticActor:
     """``network(in_keys) -> loc, scale``, then the masked Gaussian over the action slots.
 
@@ -406,6 +460,15 @@ def make_padded_mlp_actor(token_features: int, max_tokens: int, hidden_sizes: Se
     """The padded-MLP baseline's Gaussian policy, the same interface as the transformer's."""
     network = _PaddedMLPActorNetwork(token_features, max_tokens, tuple(hidden_sizes), activation, init_log_std)
     return _gaussian_actor(network, [tokens_key, TOKEN_MASK], action_spec)
+
+
+def make_modular_actor(token_features: int, hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh",
+                       init_log_std: float = 0.0, *, tokens_key: str = TOKENS,
+                       action_spec: TensorSpec | None = None) -> ProbabilisticActor:
+    """The modular policy's Gaussian policy (:class:`_ModularActorNetwork`): one controller shared
+    by every joint of any robot, the same interface as the transformer's."""
+    network = _ModularActorNetwork(token_features, tuple(hidden_sizes), activation, init_log_std)
+    return _gaussian_actor(network, [tokens_key, TOKEN_MASK, TOKEN_PARENT], action_spec)
 
 
 def make_padded_mlp_critic(token_features: int, max_tokens: int, hidden_sizes: Sequence[int] = (64, 64),
