@@ -71,7 +71,7 @@ def test_a_pending_fit_is_applied_before_its_optimizer_state_is_read_and_bad_mod
 
 
 def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_path):
-    a, b = straight_and_resumed(tmp_path, [*MOE_TINY, "algo.critic_fit=process"], first=1, total=3)
+    a, b, _ = straight_and_resumed(tmp_path, [*MOE_TINY, "algo.critic_fit=process"], first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["critic_fit"] == "process"
     assert_same_training_state(a, b, world_model=True)
     lagged = run_train(*MOE_TINY, "algo.critic_fit=lagged", "epochs=3", f"hydra.run.dir={tmp_path / 'lagged'}")

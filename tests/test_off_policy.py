@@ -4,14 +4,13 @@ and a SAC run resumes exactly; on a world model (MBPO) the learner takes its ear
 model's branches, mixing real and model data at the configured share, and an MBPO run resumes
 exactly."""
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
+from test_train import run_train, straight_and_resumed
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.checkpoint import load_checkpoint
@@ -246,25 +245,14 @@ def test_an_imagination_mbpo_cannot_learn_from_is_refused_by_name(override, matc
         make_learner(config("sac", "source=moe", "imagination=mbpo", override), 3, 1)
 
 
-def run_train(*overrides: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "train.py"), *overrides], cwd=ROOT, capture_output=True,
-                          text=True, timeout=300, check=False)
-
-
 SAC_TINY = ["algo=sac", "episodes_per_epoch=2", "robot.episode_length=10", "evaluation.grid=1", "progress_bar=false",
             "workers=1", "algo.actor_hidden=[16]", "algo.critic_hidden=[16]", "algo.batch_size=8",
             "algo.learning_starts=10", "algo.buffer_capacity=1000", "algo.updates_per_step=2"]
 
 
 def test_a_sac_run_resumes_exactly_and_refuses_bad_settings_at_start_up(tmp_path):
-    straight = run_train(*SAC_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
-    first = run_train(*SAC_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
-    resumed = run_train(*SAC_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    for result in (straight, first, resumed):
-        assert result.returncode == 0, result.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")["learner"]
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")["learner"]
+    straight, resumed, _ = straight_and_resumed(tmp_path, SAC_TINY, first=2, total=3)
+    a, b = straight["learner"], resumed["learner"]
     assert a["gradient_steps"] == b["gradient_steps"] == 2 * 3 * 20
     for key, value in a["loss"].items():
         assert torch.equal(value, b["loss"][key]), f"{key} differs after resume"
@@ -279,14 +267,8 @@ MBPO_TINY = [*SAC_TINY, "source=moe", "imagination=mbpo", "imagination.steps_per
 
 
 def test_an_mbpo_run_resumes_exactly(tmp_path):
-    straight = run_train(*MBPO_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
-    first = run_train(*MBPO_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
-    resumed = run_train(*MBPO_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    for result in (straight, first, resumed):
-        assert result.returncode == 0, result.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    straight, resumed, _ = straight_and_resumed(tmp_path, MBPO_TINY, first=2, total=3)
+    a, b = straight, resumed
     assert a["learner"]["gradient_steps"] == b["learner"]["gradient_steps"] == 2 * 3 * 20
     for key, value in a["learner"]["loss"].items():
         assert torch.equal(value, b["learner"]["loss"][key]), f"{key} differs after resume"

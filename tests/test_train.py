@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -83,9 +84,15 @@ def test_unknown_override_is_a_clear_error():
     assert "nope" in result.stderr
 
 
-def straight_and_resumed(tmp_path: Path, overrides: list[str], first: int, total: int) -> tuple[dict, dict]:
-    """The checkpoints of a run of ``total`` epochs and of one stopped after ``first`` and resumed to
-    ``total`` (folders ``straight``, ``first``, ``resumed`` under ``tmp_path``); each run must succeed."""
+class StraightAndResumed(NamedTuple):
+    straight: dict  # the checkpoint of the run of ``total`` epochs
+    resumed: dict   # the checkpoint of the run stopped after ``first`` epochs and resumed to ``total``
+    output: str     # what the straight run printed
+
+
+def straight_and_resumed(tmp_path: Path, overrides: list[str], first: int, total: int) -> StraightAndResumed:
+    """A run of ``total`` epochs and one stopped after ``first`` and resumed to ``total`` (folders
+    ``straight``, ``first``, ``resumed`` under ``tmp_path``); each run must succeed."""
     straight = run_train(*overrides, f"epochs={total}", f"hydra.run.dir={tmp_path / 'straight'}")
     assert straight.returncode == 0, straight.stderr
     stopped = run_train(*overrides, f"epochs={first}", f"hydra.run.dir={tmp_path / 'first'}")
@@ -93,20 +100,12 @@ def straight_and_resumed(tmp_path: Path, overrides: list[str], first: int, total
     resumed = run_train(*overrides, f"epochs={total}", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
                         f"hydra.run.dir={tmp_path / 'resumed'}")
     assert resumed.returncode == 0, resumed.stderr
-    return (load_checkpoint(tmp_path / "straight" / "checkpoint.pt"),
-            load_checkpoint(tmp_path / "resumed" / "checkpoint.pt"))
+    return StraightAndResumed(load_checkpoint(tmp_path / "straight" / "checkpoint.pt"),
+                              load_checkpoint(tmp_path / "resumed" / "checkpoint.pt"), straight.stdout)
 
 
 def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
-    straight = run_train(*TINY, "epochs=4", f"hydra.run.dir={tmp_path / 'straight'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*TINY, "epochs=4", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b, _ = straight_and_resumed(tmp_path, TINY, first=2, total=4)
     assert a["epoch"] == b["epoch"] == 4
     assert_same_training_state(a, b)
     torch.testing.assert_close(a["policy"]["observation_loc"], b["policy"]["observation_loc"], rtol=0, atol=0)
@@ -133,34 +132,26 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
 
     # Advantages standardised per morphology (algo.advantage_groups): the batch carries each robot's.
     grouped = [*GRAMMAR_TINY, "algo.advantage_groups=morphology"]
-    straight = run_train(*grouped, "epochs=2", "evaluation.morphologies=all", f"hydra.run.dir={tmp_path / 'a'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*grouped, "epochs=1", "evaluation.morphologies=all",
-                      f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*grouped, "epochs=2", "evaluation.morphologies=all",
-                        f"resume={tmp_path / 'first' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b, output = straight_and_resumed(tmp_path, [*grouped, "evaluation.morphologies=all"], first=1, total=2)
     assert a["epoch"] == b["epoch"] == 2
     assert (a["observation_dim"], a["action_dim"]) == (28, 29)  # F features per token, L token slots
     assert_same_training_state(a, b)
     assert torch.equal(a["policy"]["observation_loc"], b["policy"]["observation_loc"])
     assert a["best_evaluation"] == b["best_evaluation"]
     # Periodic evaluations: the usual eval/ columns over every (morphology, design) cell, each epoch.
-    with (tmp_path / "a" / "metrics.csv").open() as file:
+    with (tmp_path / "straight" / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
     assert len(rows) == 2 and all(row["eval/grid_mean_displacement"] for row in rows)
     assert [float(row["eval/episodes"]) for row in rows] == [5.0, 10.0]  # 3 + 2 morphologies, one design
-    with (tmp_path / "a" / "evaluation" / "periodic_morphologies.csv").open() as file:
+    with (tmp_path / "straight" / "evaluation" / "periodic_morphologies.csv").open() as file:
         assert [(row["epoch"], row["morphology"]) for row in csv.DictReader(file)] == \
             [(epoch, str(index)) for epoch in ("1", "2") for index in range(5)]
     # The final evaluation: every morphology on the evaluation.grid designs, and its summary.
-    with (tmp_path / "a" / "evaluation" / "morphologies.csv").open() as file:
+    with (tmp_path / "straight" / "evaluation" / "morphologies.csv").open() as file:
         assert [row["morphology"] for row in csv.DictReader(file)] == ["0", "1", "2", "3", "4"]
-    assert "morphologies 5: walking" in straight.stdout
+    assert "morphologies 5: walking" in output
     # The saved policy rebuilds from its checkpoint and drives the env it trained on.
-    loaded = load_policy(tmp_path / "a" / "checkpoint.pt")
+    loaded = load_policy(tmp_path / "straight" / "checkpoint.pt")
     assert loaded.env_class is MorphologyWalkerEnv
     env = loaded.env_class(2, **loaded.env_kwargs)
     with torch.no_grad():
@@ -174,7 +165,7 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     # python -m unipolicy_rl.evaluate takes it too, on any side of the split.
     from unipolicy_rl.evaluate import main as evaluate
 
-    summary = evaluate([str(tmp_path / "a" / "checkpoint.pt"), "--grid", "1", "--morphologies", "held_out",
+    summary = evaluate([str(tmp_path / "straight" / "checkpoint.pt"), "--grid", "1", "--morphologies", "held_out",
                         "--out", str(tmp_path / "held_out")])
     assert summary["morphologies"] == 2 and summary["designs"] == 2
 
@@ -356,15 +347,7 @@ MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every_steps=1", "imagi
 
 
 def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp_path):
-    straight = run_train(*MOE_TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*MOE_TINY, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*MOE_TINY, "epochs=3", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a = load_checkpoint(tmp_path / "straight" / "checkpoint.pt")
-    b = load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b, _ = straight_and_resumed(tmp_path, MOE_TINY, first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3
     assert_same_training_state(a, b, world_model=True)
     assert a["collector"] == b["collector"] == {"epoch": 3, "real_env_steps": 60}
@@ -456,25 +439,18 @@ GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "r
 
 
 def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly(tmp_path):
-    straight = run_train(*GRAMMAR_MOE_TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'a'}")
-    assert straight.returncode == 0, straight.stderr
-    first = run_train(*GRAMMAR_MOE_TINY, "epochs=1", f"hydra.run.dir={tmp_path / 'first'}")
-    assert first.returncode == 0, first.stderr
-    resumed = run_train(*GRAMMAR_MOE_TINY, "epochs=2", f"resume={tmp_path / 'first' / 'checkpoint.pt'}",
-                        f"hydra.run.dir={tmp_path / 'resumed'}")
-    assert resumed.returncode == 0, resumed.stderr
-    a, b = load_checkpoint(tmp_path / "a" / "checkpoint.pt"), load_checkpoint(tmp_path / "resumed" / "checkpoint.pt")
+    a, b, output = straight_and_resumed(tmp_path, GRAMMAR_MOE_TINY, first=1, total=2)
     assert a["epoch"] == b["epoch"] == 2
     assert a["config"]["world_model"]["model"]["_target_"] == "unipolicy_rl.world_models.TokenEnsemble"
     assert_same_training_state(a, b, world_model=True)
-    with (tmp_path / "a" / "metrics.csv").open() as file:
+    with (tmp_path / "straight" / "metrics.csv").open() as file:
         rows = list(csv.DictReader(file))
     real = [row for row in rows if row["imagined"] == "0.0"]
     imagined = [row for row in rows if row["imagined"] == "1.0"]
     assert len(real) == 2 and imagined and all(row["imagined/reward_per_step"] for row in imagined)
     assert real[0]["model/validation_mse"] and float(real[1]["model/fresh_error"]) > 0
-    assert (tmp_path / "a" / "logs" / "se-moe-trpo_seed0").is_dir()
-    assert "morphologies 3: walking" in straight.stdout
+    assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
+    assert "morphologies 3: walking" in output
 
 
 @pytest.mark.parametrize(

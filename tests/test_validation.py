@@ -146,7 +146,8 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["robot=grammar"], r"use a token policy \(policy=token_transformer or policy=token_mlp or policy=token_modular\)"),
+        (["robot=grammar"],
+         r"use a token policy \(policy=token_transformer or policy=token_mlp or policy=token_modular\)"),
         (["policy=token_transformer"], "policy=token_transformer reads link tokens, which robot=vertebrate does not "
                                        "write: train it with robot=grammar"),
         ([*GRAMMAR, "policy=token_mlp", "source=pce"],
@@ -161,7 +162,8 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "algo=sac"],
          "algo=sac with robot=grammar: the token policies are the on-policy learners' Gaussians, "
          "use algo=trpo or algo=ppo"),
-        (["policy.name=cnn"], r"policy.name must be one of \['mlp', 'token_mlp', 'token_modular', 'token_transformer'\], got 'cnn'"),
+        (["policy.name=cnn"],
+         r"policy.name must be one of \['mlp', 'token_mlp', 'token_modular', 'token_transformer'\], got 'cnn'"),
         (["algo.fisher_fraction=0"], r"algo: fisher_fraction must lie in \(0, 1\]"),
         (["algo.fisher_fraction=1.5"], r"algo: fisher_fraction must lie in \(0, 1\]"),
         ([*GRAMMAR, "policy=token_mlp", "evaluation.morphologies=test"], "evaluation.morphologies must be one of"),

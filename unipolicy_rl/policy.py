@@ -4,8 +4,9 @@
 through ``algo``'s MLPs (the default, and every run before the group existed); or, for robots of
 any morphology observed as padded link tokens (:mod:`unipolicy_rl.envs.tokens`),
 ``token_transformer``, its baseline ``token_mlp`` or ``token_modular`` (one controller shared by
-every joint; :mod:`unipolicy_rl.token_networks`), built by :func:`make_token_actor_critic` behind a :func:`make_token_norm`; ``policy.critic`` chooses
-the token policy's critic (:data:`TOKEN_CRITICS`).
+every joint; :mod:`unipolicy_rl.token_networks`), built by :func:`make_token_actor_critic`
+behind a :func:`make_token_norm`; ``policy.critic`` chooses the token policy's critic
+(:data:`TOKEN_CRITICS`).
 
 Kept apart from the training stack (collectors, world models, learners), so loading a policy to
 run or evaluate it imports none of them.
@@ -145,7 +146,8 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
 
     ``token_features`` (``F``) and ``max_tokens`` (``L``, the padding) come from the env's specs.
     The transformer's sizes are ``cfg.policy.network``; the padded MLP and the modular policy take
-    ``algo``'s actor hidden sizes and activation; both start at ``algo.init_log_std``. The critic: :func:`make_token_critic`.
+    ``algo``'s actor hidden sizes and activation; all start at ``algo.init_log_std``. The critic:
+    :func:`make_token_critic`.
     """
     architecture = policy_architecture(cfg)
     if architecture not in TOKEN_POLICIES:
