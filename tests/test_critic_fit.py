@@ -70,6 +70,21 @@ def test_a_pending_fit_is_applied_before_its_optimizer_state_is_read_and_bad_mod
         updater("later")
 
 
+def test_a_pending_fit_skipped_outside_an_update_counts_as_a_skipped_update():
+    one = updater("lagged")
+    one.update(collect(one.loss_module, batches(1)[0], done_every=16))
+    assert one.consecutive_skips == 0
+    before = snapshot(list(one.loss_module.critic_parameters()))
+    one._lagged_batch[one.loss_module.tensor_keys.value_target][0] = float("nan")  # a diverged batch's targets
+    result = one.finish_critic_fit()  # as a normaliser refresh or a checkpoint applies it
+    assert not result.fitted and one.consecutive_skips == 1
+    assert one.skip_reasons == ["critic fit: non-finite value target"]
+    assert all_equal(snapshot(list(one.loss_module.critic_parameters())), before)
+    assert one.finish_critic_fit() is None and one.consecutive_skips == 1  # nothing pending, nothing counted
+    one.update(collect(one.loss_module, batches(2)[1], done_every=16))  # a good update ends the run of skips
+    assert one.consecutive_skips == 0
+
+
 def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_path):
     a, b, _ = straight_and_resumed(tmp_path, [*MOE_TINY, "algo.critic_fit=process"], first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["critic_fit"] == "process"

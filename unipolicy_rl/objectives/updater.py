@@ -113,7 +113,7 @@ class TRPOUpdater:
         if self.critic_fit == "inline":
             critic_fit = self._fit(flat)
         else:  # the previous batch's fit, then this one's started (or kept) until the next update
-            critic_fit = self.finish_critic_fit() or CriticFitResult(True, None)
+            critic_fit = self._apply_pending_fit() or CriticFitResult(True, None)
             if self.critic_process is not None:
                 self.critic_process.start_fit(flat)
             else:
@@ -125,7 +125,17 @@ class TRPOUpdater:
         return metrics
 
     def finish_critic_fit(self) -> CriticFitResult | None:
-        """Applies the pending critic fit (``critic_fit`` lagged or process), if any; its result."""
+        """Applies the pending critic fit (``critic_fit`` lagged or process), if any, outside an update
+        (before a normaliser refresh or a checkpoint); its result. A fit skipped here counts as a
+        skipped update (``consecutive_skips``, ``skip_reasons``), as it would have inside the next
+        update: a critic that keeps failing stops the run whenever its fits are applied."""
+        result = self._apply_pending_fit()
+        if result is not None and not result.fitted:
+            self.last_critic_fit = result
+            self.consecutive_skips += 1
+        return result
+
+    def _apply_pending_fit(self) -> CriticFitResult | None:
         if self.critic_process is not None and self.critic_process.pending:
             return self.critic_process.finish()
         if self._lagged_batch is not None:
