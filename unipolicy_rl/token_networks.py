@@ -4,8 +4,8 @@ The input is the contract of :mod:`unipolicy_rl.envs.tokens`: ``TOKENS`` ``[*, L
 normalised), ``TOKEN_MASK`` ``[*, L]`` and ``TOKEN_PARENT`` ``[*, L]``; the action is ``[*, L]``,
 slot ``i`` driving link ``i``'s parent joint, restricted to ``ACTION_MASK``.
 
-Two architectures with one interface (the same in-keys, ``loc``/``scale`` per slot, the same
-distribution and critic output):
+Three architectures with one interface (``loc``/``scale`` per slot, the same distribution and
+critic output):
 
 * the token transformer (Amorpheus / MetaMorph): a linear embedding per token, a few
   self-attention layers in which no real token sees padding, one shared action head applied to
@@ -15,7 +15,10 @@ distribution and critic output):
   the same network runs any robot, and padding a robot with empty tokens leaves its real slots'
   outputs unchanged;
 * the padded MLP (the baseline): the normalised tokens flattened in slot order (padding zero)
-  with the token mask beside them, through an MLP to ``[L]`` means; its weights are tied to ``L``.
+  with the token mask beside them, through an MLP to ``[L]`` means; its weights are tied to ``L``;
+* the modular policy: one controller shared by every joint (an MLP encoding per token, one head
+  MLP per joint on its token, its parent's and children's encodings and the body's pooled
+  encoding); like the transformer's, its weights do not depend on ``L`` or on the slot order.
 
 Three critics (state value, ``[*, 1]``), any of them beside either actor: the transformer's own
 encoder, mean-pooled over the real tokens; the padded MLP; and the pooled token MLP (Deep Sets:
