@@ -94,6 +94,15 @@ def padded(data: TensorDict, length: int) -> TensorDict:
     return out
 
 
+def perturbed(module):
+    """``module`` with every parameter moved by 0.2 standard normals: a policy away from its
+    near-zero initial mean."""
+    with torch.no_grad():
+        for param in module.parameters():
+            param.add_(0.2 * torch.randn_like(param))
+    return module
+
+
 def collect(actor, data: TensorDict) -> TensorDict:
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         return actor(data.clone())
@@ -112,9 +121,7 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
     settings = TokenTransformerSettings(d_model=16, heads=2, layers=2, feedforward=32, graph_attention=graph_attention,
                                         **head)
     actor, critic = transformer(settings)
-    with torch.no_grad():  # a policy away from its near-zero initial mean
-        for param in actor.parameters():
-            param.add_(0.2 * torch.randn_like(param))
+    perturbed(actor)
     data = collect(actor, robots([SNAKE, QUADRUPED], length=7, batch=6))
     bigger = padded(data, 12)
 
@@ -133,10 +140,7 @@ def test_padding_leaves_the_transformer_distribution_and_value_unchanged(graph_a
 
 
 def test_padding_leaves_the_modular_policy_unchanged_and_a_reordered_body_acts_the_same():
-    actor = make_modular_actor(F, (16, 16), init_log_std=-0.5)
-    with torch.no_grad():  # a policy away from its near-zero initial mean
-        for param in actor.parameters():
-            param.add_(0.2 * torch.randn_like(param))
+    actor = perturbed(make_modular_actor(F, (16, 16), init_log_std=-0.5))
     data = collect(actor, robots([SNAKE, QUADRUPED], length=7, batch=6))
     bigger = padded(data, 12)
     with torch.no_grad():
@@ -159,10 +163,8 @@ def test_padding_leaves_the_modular_policy_unchanged_and_a_reordered_body_acts_t
         loc, moved_loc = actor.get_dist_params(quadruped)["loc"], actor.get_dist_params(moved)["loc"]
     torch.testing.assert_close(moved_loc[:, old_to_new], loc, atol=1e-5, rtol=1e-5)
     # ... where the padded MLP, whose weights belong to slots, acts differently.
-    mlp = make_padded_mlp_actor(F, 7, (16,), init_log_std=-0.5)
+    mlp = perturbed(make_padded_mlp_actor(F, 7, (16,), init_log_std=-0.5))
     with torch.no_grad():
-        for param in mlp.parameters():
-            param.add_(0.2 * torch.randn_like(param))
         mlp_loc, mlp_moved = mlp.get_dist_params(quadruped)["loc"], mlp.get_dist_params(moved)["loc"]
     assert (mlp_moved[:, old_to_new] - mlp_loc)[quadruped[ACTION_MASK]].abs().max() > 1e-3
 

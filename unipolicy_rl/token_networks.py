@@ -282,6 +282,20 @@ class _TransformerCriticNetwork(nn.Module):
         return self.value_head(_masked_mean(self.encoder(tokens, token_mask, token_parent), token_mask))
 
 
+def per_token_encoder(token_features: int, hidden_sizes: tuple[int, ...], activation: str, owner: str) -> nn.Sequential:
+    """One MLP applied to every token, ``[*, L, F] -> [*, L, hidden_sizes[-1]]``, each layer followed
+    by the activation (its last layer is a hidden one: gain sqrt 2): the per-token half of the pooled
+    critic and of the modular policy. ``owner`` names the network in the errors."""
+    if not (isinstance(token_features, int) and token_features >= 1):
+        raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
+    if not hidden_sizes:
+        raise ValueError(f"{owner} needs at least one hidden size (the width of each token's encoding), "
+                         "got hidden_sizes=()")
+    # make_mlp checks the activation's name.
+    layers = make_mlp(token_features, hidden_sizes[-1], hidden_sizes[:-1], activation, output_gain=math.sqrt(2.0))
+    return nn.Sequential(*layers, ACTIVATIONS[activation]())
+
+
 class PooledTokenCritic(nn.Module):
     """``(tokens [*, L, F], mask [*, L]) -> [*, 1]``, Deep Sets: one MLP on every token (its
     hidden layers ``hidden_sizes``, each followed by the activation), the masked mean and max of
@@ -297,16 +311,8 @@ class PooledTokenCritic(nn.Module):
 
     def __init__(self, token_features: int, hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh") -> None:
         super().__init__()
-        if not (isinstance(token_features, int) and token_features >= 1):
-            raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
         hidden_sizes = tuple(hidden_sizes)
-        if not hidden_sizes:
-            raise ValueError("the pooled critic needs at least one hidden size (the width of each token's "
-                             "features before pooling), got hidden_sizes=()")
-        # make_mlp checks the activation's name; its last layer here is a hidden one (gain sqrt 2).
-        per_token = make_mlp(token_features, hidden_sizes[-1], hidden_sizes[:-1], activation,
-                             output_gain=math.sqrt(2.0))
-        self.token_mlp = nn.Sequential(*per_token, ACTIVATIONS[activation]())
+        self.token_mlp = per_token_encoder(token_features, hidden_sizes, activation, "the pooled critic")
         self.head = make_mlp(2 * hidden_sizes[-1], 1, hidden_sizes, activation, output_gain=1.0)
 
     def forward(self, tokens: torch.Tensor, token_mask: torch.Tensor) -> torch.Tensor:
@@ -385,15 +391,9 @@ class _ModularActorNetwork(nn.Module):
     def __init__(self, token_features: int, hidden_sizes: Sequence[int], activation: str,
                  init_log_std: float) -> None:
         super().__init__()
-        if not (isinstance(token_features, int) and token_features >= 1):
-            raise ValueError(f"token_features must be a positive integer, got {token_features!r}")
         hidden_sizes = tuple(hidden_sizes)
-        if not hidden_sizes:
-            raise ValueError("the modular policy needs at least one hidden size (the width of each token's "
-                             "encoding), got hidden_sizes=()")
+        self.encoder = per_token_encoder(token_features, hidden_sizes, activation, "the modular policy")
         width = hidden_sizes[-1]
-        encoder = make_mlp(token_features, width, hidden_sizes[:-1], activation, output_gain=math.sqrt(2.0))
-        self.encoder = nn.Sequential(*encoder, ACTIVATIONS[activation]())
         # The token's own features come first, so a normaliser refresh re-expresses the leading columns.
         self.head = make_mlp(token_features + 4 * width, 1, hidden_sizes, activation, output_gain=0.01)
         self.std = SharedLogStd(init_log_std)
