@@ -97,3 +97,37 @@ def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_
     assert bad.returncode != 0 and "algo.critic_fit=lagged with imagination.train_on_real=true" in bad.stderr
     bad = run_train(*MOE_TINY, "algo=ppo", "algo.critic_fit=process", f"hydra.run.dir={tmp_path / 'bad_ppo'}")
     assert bad.returncode != 0 and "algo.critic_fit=process with algo=ppo" in bad.stderr
+
+
+def composed(*overrides: str):
+    from hydra import compose, initialize_config_dir
+    from test_config_defaults import CONF
+
+    with initialize_config_dir(str(CONF), version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize(("overrides", "critic_fit", "fit_threads"), [
+    ((), "inline", None),                                    # SE: no model, no spare time to overlap
+    (("source=moe",), "process", 2),                         # the league's measure (docs/results.md)
+    (("source=moe", "algo=ppo"), "inline", 2),               # PPO's shuffles share the fit's generator
+    (("source=moe", "algo.critic_fit=lagged"), "lagged", 2),  # a setting of the user's wins
+    (("source=pce",), "inline", None),                       # unmeasured there
+])
+def test_the_source_chooses_when_the_critic_is_fitted(overrides, critic_fit, fit_threads):
+    from unipolicy_rl.validation import validate_config
+
+    cfg = composed(*overrides)
+    validate_config(cfg)
+    assert cfg.algo.critic_fit == critic_fit
+    if cfg.source.kind == "model":
+        assert cfg.world_model.trainer.get("num_threads") == fit_threads
+
+
+def test_a_real_batch_update_on_the_default_model_source_names_the_default_and_the_fix():
+    from unipolicy_rl.validation import validate_config
+
+    with pytest.raises(ValueError, match=r"algo.critic_fit=process \(source=moe's default\) with "
+                                         r"imagination.train_on_real=true.*add algo.critic_fit=inline"):
+        validate_config(composed("source=moe", "imagination.train_on_real=true"))
+    validate_config(composed("source=moe", "imagination.train_on_real=true", "algo.critic_fit=inline"))

@@ -43,7 +43,7 @@ def test_the_loop_trains_an_off_policy_learner_that_keeps_its_own_buffer(tmp_pat
     model_based = ["source=moe", "imagination.steps_per_batch=20", "imagination.horizon.start=2",
                    "imagination.horizon.end=2", "world_model.model.hidden=[8]", "world_model.trainer.max_epochs=1",
                    "imagination.stopping.kind=fixed", "imagination.stopping.max_updates=2",
-                   "imagination.train_on_real=true"] if source == "moe" else []
+                   "imagination.train_on_real=true", "algo.critic_fit=inline"] if source == "moe" else []
     result = run_train_with(WITH_REPLAY_LEARNER, *TINY, *model_based, "epochs=3", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
     rows = _rows(tmp_path)

@@ -15,6 +15,7 @@ from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
 from unipolicy_rl.envs.slot_layout import StructuralLayout
 from unipolicy_rl.envs.tokens import (
     ACTION_MASK,
+    CLOCK,
     FEATURE_INDEX,
     MORPHOLOGY,
     TOKEN_FEATURES,
@@ -160,6 +161,22 @@ def test_reset_forces_morphology_and_design_and_rebuilds_only_masked_robots():
     env.close()
 
 
+def test_the_clock_is_each_robots_phase_since_its_episode_began():
+    env = _env(2, clock_frequency=1.5)
+    check_env_specs(env, seed=0)
+    assert CLOCK not in _env(1).observation_spec.keys()  # no clock unless asked for
+    td = _forced(env, [0, 2])
+    torch.testing.assert_close(td[CLOCK], torch.tensor([[0.0, 1.0], [0.0, 1.0]]))  # phase 0 at the start
+    for _ in range(4):
+        td = env.step(td.set("action", torch.zeros(2, env.max_links)))["next"]
+    phase = torch.tensor(2 * torch.pi * 1.5 * env.control_period * 4)
+    torch.testing.assert_close(td[CLOCK][0], torch.stack([phase.sin(), phase.cos()]).float())
+    td.update({"_reset": torch.tensor([[False], [True]]), MORPHOLOGY: torch.tensor([[0], [1]])})
+    after = env.reset(td)  # the reset robot's clock starts again, the other's runs on
+    torch.testing.assert_close(after[CLOCK], torch.stack([td[CLOCK][0], torch.tensor([0.0, 1.0])]))
+    env.close()
+
+
 def _trajectory(morphologies, actions, masked_value=None, seed=0, **kwargs):
     env = _env(len(morphologies), max_links=actions.shape[-1], design=DE, **kwargs)
     env.set_seed(seed)
@@ -287,6 +304,7 @@ def test_a_physics_fault_truncates_that_robot_only_and_repeats_its_last_tokens()
     (lambda: _env(morphologies=(SIX_LINKS,), driven_joints=("axial_roll",)), "morphology 0 has no hinge"),
     (lambda: _env(sampling="round_robin"), "round_robin"),
     (lambda: _env(max_links=0), "max_links"),
+    (lambda: _env(clock_frequency=0.0), "clock_frequency must be a positive number of Hz or None, got 0.0"),
     (lambda: _env(token_layout=StructuralLayout(2, 4)), r"morphology 0 does not fit the token layout: link 'body_2'"),
     (lambda: _env(token_layout=StructuralLayout(3, 2)), r"morphology 0 does not fit .* leg_slots=2"),
     (lambda: _env(token_layout=StructuralLayout(3, 3), max_links=14), r"morphology 0 puts a link at slot 14"),

@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from torch import distributions as D
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
+from unipolicy_rl.envs.tokens import ACTION_MASK, CLOCK, TOKEN_MASK, TOKEN_PARENT, TOKENS
 from unipolicy_rl.masked_normal import MaskedIndependentNormal
 from unipolicy_rl.networks import make_actor, make_critic
 from unipolicy_rl.objectives import TRPOLoss, TrustRegion, natural_gradient_step
@@ -167,6 +167,25 @@ def test_padding_leaves_the_modular_policy_unchanged_and_a_reordered_body_acts_t
     with torch.no_grad():
         mlp_loc, mlp_moved = mlp.get_dist_params(quadruped)["loc"], mlp.get_dist_params(moved)["loc"]
     assert (mlp_moved[:, old_to_new] - mlp_loc)[quadruped[ACTION_MASK]].abs().max() > 1e-3
+
+
+def test_the_modular_policy_with_a_clock_reads_it_at_every_joint_and_padding_still_changes_nothing():
+    actor = perturbed(make_modular_actor(F, (16, 16), init_log_std=-0.5, clock=True))
+    assert CLOCK in actor.in_keys and CLOCK not in make_modular_actor(F, (16, 16)).in_keys
+    data = robots([SNAKE, QUADRUPED], length=7, batch=6)
+    phase = torch.rand(6, 1) * 2 * torch.pi
+    data[CLOCK] = torch.cat([phase.sin(), phase.cos()], -1)
+    data = collect(actor, data)
+    later = data.clone()
+    later[CLOCK] = torch.cat([(phase + 1).sin(), (phase + 1).cos()], -1)
+    bigger = padded(data, 12)
+    with torch.no_grad():
+        now, then, big = (actor.get_dist_params(d.clone())["loc"] for d in (data, later, bigger))
+    real = data[ACTION_MASK]
+    assert (now - then)[real].abs().min() > 0  # every real joint moves with the phase
+    torch.testing.assert_close(big[..., :7][real], now[real], atol=1e-5, rtol=1e-5)
+    with pytest.raises(KeyError):  # an env without a clock: the policy says what is missing
+        actor(robots([SNAKE], length=7, batch=2))
 
 
 def test_slot_vectors_let_a_body_move_one_slot_alone_and_padding_still_changes_nothing():

@@ -186,6 +186,12 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "policy.critic=transformer"],
          "policy.critic=transformer takes its sizes from policy.critic_network or policy.network, and "
          "policy=token_mlp has neither"),
+        ([*GRAMMAR, "policy=token_modular", "robot.clock_frequency=-1"],
+         r"robot.clock_frequency must lie in \(0, inf\) or null, got -1"),
+        ([*GRAMMAR, "policy=token_transformer", "robot.clock_frequency=1.5"],
+         "robot.clock_frequency=1.5 adds a gait clock only policy=token_modular reads"),
+        ([*GRAMMAR, "policy=token_modular", "source=moe", "robot.clock_frequency=1.5"],
+         "robot.clock_frequency=1.5 with source=moe: the world model's imagined steps carry no clock"),
     ],
 )
 def test_a_robot_and_policy_that_cannot_train_together_are_refused_by_name(overrides, message):
@@ -198,6 +204,7 @@ def test_a_grammar_run_with_a_token_policy_is_valid():
         validate_config(composed([*GRAMMAR, f"policy={policy}", "robot.training_morphologies=2",
                                   "evaluation.morphologies=all", "algo.fisher_fraction=0.2"]))
     validate_config(composed([*GRAMMAR, "policy=token_transformer", "algo.advantage_groups=morphology"]))
+    validate_config(composed([*GRAMMAR, "policy=token_modular", "robot.clock_frequency=1.5"]))
 
 
 def test_a_model_based_grammar_run_takes_the_ensemble_conditioned_on_the_morphology():

@@ -139,6 +139,11 @@ def make_token_norm(token_features: int, loc: torch.Tensor | None = None,
     return TokenNorm(loc, scale, out_key=NORMALIZED_TOKENS)
 
 
+def reads_the_clock(cfg: DictConfig) -> bool:
+    """Whether the policy reads the env's gait clock: where the robot has one (``robot.clock_frequency``)."""
+    return OmegaConf.select(cfg, "robot.clock_frequency", default=None) is not None
+
+
 def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: int):
     """TRPO's actor and critic for ``cfg.policy`` (``token_transformer``, ``token_mlp`` or ``token_modular``, and
     ``policy.critic``), reading the normalised tokens, the token mask and parents, and (the
@@ -162,7 +167,7 @@ def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: in
                                              max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
     elif architecture == "token_modular":
         actor = make_modular_actor(token_features, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
-                                   tokens_key=NORMALIZED_TOKENS)
+                                   tokens_key=NORMALIZED_TOKENS, clock=reads_the_clock(cfg))
     else:
         actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
                                       algo.init_log_std, tokens_key=NORMALIZED_TOKENS)

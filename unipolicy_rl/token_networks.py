@@ -47,7 +47,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from unipolicy_rl.envs.tokens import ACTION_MASK, TOKEN_MASK, TOKEN_PARENT, TOKENS
+from unipolicy_rl.envs.tokens import ACTION_MASK, CLOCK, TOKEN_MASK, TOKEN_PARENT, TOKENS
 from unipolicy_rl.masked_normal import MaskedIndependentNormal
 from unipolicy_rl.networks import ACTIVATIONS, _orthogonal_linear, make_mlp
 from unipolicy_rl.observation_statistics import reexpress_linear, reexpress_weights
@@ -69,6 +69,7 @@ __all__ = [
 ]
 
 TRANSFORMER_ACTIVATIONS = ("relu", "gelu")
+CLOCK_SIZE = 2  # the env's CLOCK: (sin, cos) of the gait phase
 
 
 @dataclass(frozen=True)
@@ -386,19 +387,26 @@ class _ModularActorNetwork(nn.Module):
     transformer does, at the cost of an MLP per token: a new body is read the way its parts were,
     one link away from each joint and through the body's summary beyond. Padding never reaches a
     real slot (it is zeroed, left out of both poolings, and no real link is its parent or child).
+
+    With ``clock`` the head also reads the env's gait clock (``(sin, cos)`` of one phase for the
+    whole body): a rhythm every joint shares, so one controller can make a travelling wave on any
+    body (each joint's offset on the phase from what its token says), where without it the rhythm
+    must come from the body's own feedback, which differs from body to body.
     """
 
     def __init__(self, token_features: int, hidden_sizes: Sequence[int], activation: str,
-                 init_log_std: float) -> None:
+                 init_log_std: float, clock: bool = False) -> None:
         super().__init__()
         hidden_sizes = tuple(hidden_sizes)
         self.encoder = per_token_encoder(token_features, hidden_sizes, activation, "the modular policy")
         width = hidden_sizes[-1]
+        self.clock = clock
         # The token's own features come first, so a normaliser refresh re-expresses the leading columns.
-        self.head = make_mlp(token_features + 4 * width, 1, hidden_sizes, activation, output_gain=0.01)
+        self.head = make_mlp(token_features + 4 * width + (CLOCK_SIZE if clock else 0), 1, hidden_sizes, activation,
+                             output_gain=0.01)
         self.std = SharedLogStd(init_log_std)
 
-    def forward(self, tokens, token_mask, token_parent):
+    def forward(self, tokens, token_mask, token_parent, clock=None):
         real = token_mask.unsqueeze(-1)
         tokens = torch.where(real, tokens, torch.zeros((), dtype=tokens.dtype))
         encoded = torch.where(real, self.encoder(tokens), torch.zeros((), dtype=tokens.dtype))  # [*, L, W]
@@ -412,7 +420,10 @@ class _ModularActorNetwork(nn.Module):
         children = child_sum / child_count.clamp(min=1.0)
         body = torch.cat([_masked_mean(encoded, token_mask), _masked_max(encoded, token_mask)], -1)
         body = body.unsqueeze(-2).expand(*encoded.shape[:-1], body.shape[-1])
-        return self.std(self.head(torch.cat([tokens, parent, children, body], -1)).squeeze(-1))
+        inputs = [tokens, parent, children, body]
+        if self.clock:
+            inputs.append(clock.unsqueeze(-2).expand(*encoded.shape[:-1], clock.shape[-1]))
+        return self.std(self.head(torch.cat(inputs, -1)).squeeze(-1))
 
     def reexpress_input(self, old_loc, old_scale, new_loc, new_scale) -> None:
         """The encoder's first layer and the head's token columns, for a moved normaliser: every
@@ -466,12 +477,13 @@ def make_padded_mlp_actor(token_features: int, max_tokens: int, hidden_sizes: Se
 
 
 def make_modular_actor(token_features: int, hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh",
-                       init_log_std: float = 0.0, *, tokens_key: str = TOKENS,
+                       init_log_std: float = 0.0, *, tokens_key: str = TOKENS, clock: bool = False,
                        action_spec: TensorSpec | None = None) -> ProbabilisticActor:
     """The modular policy's Gaussian policy (:class:`_ModularActorNetwork`): one controller shared
-    by every joint of any robot, the same interface as the transformer's."""
-    network = _ModularActorNetwork(token_features, tuple(hidden_sizes), activation, init_log_std)
-    return _gaussian_actor(network, [tokens_key, TOKEN_MASK, TOKEN_PARENT], action_spec)
+    by every joint of any robot, the same interface as the transformer's; with ``clock`` it also
+    reads the env's ``CLOCK`` (an env built with a clock frequency)."""
+    network = _ModularActorNetwork(token_features, tuple(hidden_sizes), activation, init_log_std, clock)
+    return _gaussian_actor(network, [tokens_key, TOKEN_MASK, TOKEN_PARENT, *([CLOCK] if clock else [])], action_spec)
 
 
 def make_padded_mlp_critic(token_features: int, max_tokens: int, hidden_sizes: Sequence[int] = (64, 64),

@@ -17,6 +17,7 @@ the few that are library entry points run the rules of the keys they read throug
 from __future__ import annotations
 
 import math
+import multiprocessing
 from collections.abc import Callable
 
 from hydra.utils import instantiate
@@ -134,6 +135,7 @@ ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
         "robot.design_in_tokens": _flag,
         "robot.token_layout": _one_of(set(TOKEN_LAYOUTS)),
         "robot.evaluation_every_steps": POSITIVE,
+        "robot.clock_frequency": _optional(_number(0.0, INF, low_open=True, high_open=True)),
     },
 }
 
@@ -180,6 +182,21 @@ def _policy_reads_the_robot(cfg: DictConfig) -> str | None:
     if robot_kind(cfg) != "grammar" and name in TOKEN_POLICIES:
         return (f"policy={name} reads link tokens, which robot={robot_kind(cfg)} does not write: train it with "
                 f"robot=grammar (the vertebrate is one of the grammar's morphologies), or use policy=mlp here")
+    return None
+
+
+def _clock_is_read(cfg: DictConfig) -> str | None:
+    """The gait clock is an input of the modular policy only, and no world model predicts it."""
+    frequency = OmegaConf.select(cfg, "robot.clock_frequency", default=None)
+    if robot_kind(cfg) != "grammar" or frequency is None:
+        return None
+    if cfg.policy.name != "token_modular":
+        return (f"robot.clock_frequency={frequency} adds a gait clock only policy=token_modular reads, and "
+                f"policy={cfg.policy.name} would ignore it: use policy=token_modular or robot.clock_frequency=null")
+    if cfg.source.kind == "model":
+        return (f"robot.clock_frequency={frequency} with source={cfg.source.get('name', cfg.source.kind)}: the world "
+                f"model's imagined steps carry no clock; train on the real robots (source=se) or set "
+                f"robot.clock_frequency=null")
     return None
 
 
@@ -248,17 +265,22 @@ def _model_source_groups(cfg: DictConfig) -> str | None:
     return None
 
 
-def _lagged_critic_without_real_updates(cfg: DictConfig) -> str | None:
+def _critic_fit_runs_here(cfg: DictConfig) -> str | None:
     """A lagged critic's pending fit is applied at the epoch's normaliser refresh; a policy update on
     the real batch comes before it and would read the critic half-way (and a resumed run would not).
-    The fit's process owns the fit's generator, which PPO's step shares."""
+    The fit's process owns the fit's generator, which PPO's step shares, and is a fork."""
     if cfg.algo.name == "ppo" and cfg.algo.critic_fit == "process":
         return ("algo.critic_fit=process with algo=ppo: PPO's minibatch shuffles draw from the critic fit's generator, "
                 "which the fit's process takes over; use algo.critic_fit=inline or lagged")
     if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit != "inline" and cfg.source.kind == "model"
             and cfg.imagination.train_on_real):
-        return (f"algo.critic_fit={cfg.algo.critic_fit} with imagination.train_on_real=true: the update on each "
-                f"real batch would read a critic whose last fit is still pending; use algo.critic_fit=inline")
+        default = " (source=moe's default)" if cfg.source.get("critic_fit") == cfg.algo.critic_fit else ""
+        return (f"algo.critic_fit={cfg.algo.critic_fit}{default} with imagination.train_on_real=true: the update on "
+                f"each real batch would read a critic whose last fit is still pending; add algo.critic_fit=inline")
+    if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit == "process"
+            and "fork" not in multiprocessing.get_all_start_methods()):
+        return ("algo.critic_fit=process forks the critic's fit, and this platform cannot fork; "
+                "add algo.critic_fit=lagged (the same learning, in one process)")
     return None
 
 
@@ -269,11 +291,12 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("source.kind", "world_model", "imagination"): _model_source_groups,
     ("robot",): _known_robot,
     ("robot", "policy.name"): _policy_reads_the_robot,
+    ("robot", "policy.name", "source.kind"): _clock_is_read,
     ("policy",): _token_critic_builds,
     ("robot", "algo.name"): _grammar_learns_on_policy,
     ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
-    ("algo", "source"): _lagged_critic_without_real_updates,
+    ("algo", "source"): _critic_fit_runs_here,
 }
 
 

@@ -113,6 +113,7 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
         "driven_joints": None if robot.driven_joints is None else tuple(robot.driven_joints),
         "design_in_tokens": robot.design_in_tokens,
         "token_layout": StructuralLayout.covering(limits) if layout == "structural" else None,
+        "clock_frequency": robot.get("clock_frequency"),
     }
 
 

@@ -26,7 +26,7 @@ from unipolicy_rl.envs.morphology_simulation import MorphologySimulation
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, healthy_rows, joint_targets
 from unipolicy_rl.envs.slot_layout import StructuralLayout, packed_slots
-from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKEN_PARENT, TOKEN_SIZE, TOKENS
+from unipolicy_rl.envs.tokens import ACTION_MASK, CLOCK, MORPHOLOGY, TOKEN_MASK, TOKEN_PARENT, TOKEN_SIZE, TOKENS
 from unipolicy_rl.robots import RobotDescription
 from unipolicy_rl.robots.grammar import RULES, Morphology, PartKinds, derive, describe, part_kinds, split_morphologies
 from unipolicy_rl.robots.grammar.derivation import RobotGraph
@@ -80,6 +80,8 @@ class MorphologyWalkerEnv(EnvBase):
     None packs each robot's links into the first slots in link order; a
     :class:`~unipolicy_rl.envs.slot_layout.StructuralLayout` puts each link at the slot its role
     in the body fixes, padding in the gaps (the masks and ``token_parent`` follow the slots).
+    ``clock_frequency``: adds ``clock``, the ``(sin, cos)`` of each robot's gait phase at this many
+    Hz from its episode's start (:data:`~unipolicy_rl.envs.tokens.CLOCK`); None: no clock.
     """
 
     batch_locked = True
@@ -97,6 +99,7 @@ class MorphologyWalkerEnv(EnvBase):
         driven_joints: Sequence[str] | None = None,
         design_in_tokens: bool = False,
         token_layout: StructuralLayout | None = None,
+        clock_frequency: float | None = None,
         device: str | torch.device = "cpu",
     ):
         if not (isinstance(num_robots, (int, np.integer)) and num_robots >= 1):
@@ -118,6 +121,9 @@ class MorphologyWalkerEnv(EnvBase):
                 raise ValueError(f"driven_joints must name hinge types {list(HINGE_TYPES)}, got {list(driven_joints)}")
         if token_layout is not None and not isinstance(token_layout, StructuralLayout):
             raise ValueError(f"token_layout must be None (packed) or a StructuralLayout, got {token_layout!r}")
+        if clock_frequency is not None and not (isinstance(clock_frequency, (int, float, np.number))
+                                                and 0 < clock_frequency < float("inf")):
+            raise ValueError(f"clock_frequency must be a positive number of Hz or None, got {clock_frequency!r}")
         if max_links is not None and not (isinstance(max_links, (int, np.integer)) and max_links >= 1):
             raise ValueError(f"max_links must be a positive integer or None, got {max_links!r}")
         super().__init__(batch_size=torch.Size([num_robots]), device=device)
@@ -129,6 +135,7 @@ class MorphologyWalkerEnv(EnvBase):
         self.episode_length = None if episode_length is None else int(episode_length)
         self.sampling = sampling
         self.design_in_tokens = design_in_tokens
+        self.clock_frequency = None if clock_frequency is None else float(clock_frequency)
         self._morphs = [self._prepare(index, morphology, driven_joints)
                         for index, morphology in enumerate(morphologies)]
         needed = max(int(morph.slots.max()) + 1 for morph in self._morphs)
@@ -196,6 +203,8 @@ class MorphologyWalkerEnv(EnvBase):
             },
             shape=shape,
         )
+        if self.clock_frequency is not None:
+            self.observation_spec[CLOCK] = Bounded(-1.0, 1.0, (*shape, 2), dtype=torch.float32, device=device)
         self.action_spec = Bounded(-1.0, 1.0, (*shape, links), dtype=torch.float32, device=device)
         self.reward_spec = Unbounded((*shape, 1), dtype=torch.float32, device=device)
         flag = Categorical(2, (*shape, 1), dtype=torch.bool, device=device)
@@ -324,6 +333,9 @@ class MorphologyWalkerEnv(EnvBase):
             "terminated": np.zeros_like(done),
             "truncated": done.copy(),
         }
+        if self.clock_frequency is not None:
+            phase = 2 * np.pi * self.clock_frequency * self.control_period * self._steps
+            out[CLOCK] = np.stack([np.sin(phase), np.cos(phase)], -1).astype(np.float32)
         if reward is not None:
             out["reward"] = reward.astype(np.float32).reshape(n, 1)
         return numpy_tensordict(out, self.batch_size, self.device)

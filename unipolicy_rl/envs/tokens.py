@@ -20,6 +20,9 @@ Shapes (``*`` is the env's batch shape, ``L`` the padded number of links):
   in a learner's log-probabilities, entropy and KL.
 - ``MORPHOLOGY``: ``[*, 1]`` int64, which robot of the env's morphology set each robot is (an
   index into it), for evaluation to group by; set it in a reset to force a robot.
+- ``CLOCK``: ``[*, 2]`` float32, only from an env given a clock frequency: ``(sin, cos)`` of the
+  gait phase ``2 pi f t``, ``t`` the seconds since the robot's episode began. One rhythm every
+  joint can read, whatever the body (a travelling wave is each joint's phase offset on it).
 
 A token's features, in :data:`TOKEN_FEATURES` order (``F`` = :data:`TOKEN_SIZE`), world frame
 unless said; the first six are the thesis observation's per-body numbers, so the root token's
@@ -57,6 +60,7 @@ TOKEN_MASK = "token_mask"
 TOKEN_PARENT = "token_parent"
 ACTION_MASK = "action_mask"
 MORPHOLOGY = "morphology"
+CLOCK = "clock"
 
 TOKEN_FEATURES: tuple[str, ...] = (
     "x", "y", "z",
