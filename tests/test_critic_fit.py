@@ -51,6 +51,23 @@ def test_the_fit_on_a_process_learns_exactly_what_the_lagged_fit_does_and_the_la
     assert all_equal(train(updater("lagged"), data, flush_each=True), inline)
 
 
+def test_the_fit_process_leaves_ctrl_c_and_sigterm_to_the_training_process():
+    """Both reach the whole process group; the child fits on, and close() still ends it."""
+    import os
+    import signal
+
+    one = updater("process")
+    data = batches(2)
+    one.update(collect(one.loss_module, data[0], done_every=16))
+    child = one.critic_process._process
+    for number in (signal.SIGINT, signal.SIGTERM):
+        os.kill(child.pid, number)
+    one.update(collect(one.loss_module, data[1], done_every=16))  # the first fit arrives, the second starts
+    assert one.finish_critic_fit().fitted and child.is_alive()
+    one.close()
+    assert not child.is_alive()
+
+
 def test_a_pending_fit_is_applied_before_its_optimizer_state_is_read_and_bad_modes_are_named():
     one = updater("process")
     try:

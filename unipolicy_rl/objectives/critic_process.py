@@ -19,7 +19,9 @@ from the child.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import traceback
+import weakref
 
 import torch
 from tensordict import TensorDictBase
@@ -92,14 +94,7 @@ class CriticFitProcess:
 
     def close(self) -> None:
         if self._process is not None:
-            try:
-                self._connection.send(("close", None))
-            except (BrokenPipeError, OSError):
-                pass
-            self._process.join(timeout=5)
-            if self._process.is_alive():
-                self._process.terminate()
-            self._connection.close()
+            self._closer()
             self._process = self._connection = None
         self.pending = False
 
@@ -115,6 +110,9 @@ class CriticFitProcess:
         self._process.start()
         child.close()
         self._connection = parent
+        # Ended by close(), or at the latest when the interpreter exits: before multiprocessing's own
+        # exit handler, which would SIGTERM the child (ignored: _serve) and then wait on it forever.
+        self._closer = weakref.finalize(self, _end_child, self._process, parent)
 
     def _call(self, command: str, payload):
         if self.pending:
@@ -132,12 +130,35 @@ class CriticFitProcess:
         self.close()
 
 
+def _end_child(process: multiprocessing.process.BaseProcess, connection) -> None:
+    """Asks the child to stop, waits a little, kills it if it is still there."""
+    try:
+        connection.send(("close", None))
+    except (BrokenPipeError, OSError):
+        pass
+    process.join(timeout=5)
+    if process.is_alive():
+        process.kill()
+        process.join()
+    connection.close()
+
+
 def _serve(connection, loss: TRPOLoss, optimizer: torch.optim.Optimizer, epochs: int, minibatch_size: int,
            generator: torch.Generator | None) -> None:
-    """The child's loop: fits, weight and state exchanges, until ``close``."""
+    """The child's loop: fits, weight and state exchanges, until ``close``.
+
+    Ctrl-C and a scheduler's SIGTERM reach the whole process group; the training process decides
+    what they mean (stop after the epoch), so the child, a fork that would otherwise share its
+    handler or die mid-fit, ignores them. It ends on ``close``, on the parent's end of the pipe
+    closing, or by SIGKILL."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     torch.set_num_threads(1)
     while True:
-        command, payload = connection.recv()
+        try:
+            command, payload = connection.recv()
+        except EOFError:  # the parent is gone
+            return
         if command == "close":
             connection.close()
             return
