@@ -31,6 +31,9 @@ from unipolicy_rl.objectives.trpo import TRPOLoss
 
 __all__ = ["CriticFitProcess"]
 
+# What a terminal's Ctrl-C, `timeout` or a scheduler send to a whole process group.
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
 
 class CriticFitProcess:
     """:func:`fit_critic` on a forked child process, one fit at a time.
@@ -107,7 +110,12 @@ class CriticFitProcess:
         self._process = context.Process(target=_serve, daemon=True, name="critic-fit",
                                         args=(child, self.loss, self.optimizer, self.epochs, self.minibatch_size,
                                               self.generator))
-        self._process.start()
+        # The child starts with the stop signals blocked, so none reaches it before _serve ignores them.
+        unblocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            self._process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, unblocked)
         child.close()
         self._connection = parent
         # Ended by close(), or at the latest when the interpreter exits: before multiprocessing's own
@@ -151,8 +159,9 @@ def _serve(connection, loss: TRPOLoss, optimizer: torch.optim.Optimizer, epochs:
     what they mean (stop after the epoch), so the child, a fork that would otherwise share its
     handler or die mid-fit, ignores them. It ends on ``close``, on the parent's end of the pipe
     closing, or by SIGKILL."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    for number in STOP_SIGNALS:
+        signal.signal(number, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     torch.set_num_threads(1)
     while True:
         try:
