@@ -28,6 +28,7 @@ Run from the repository root::
 
     python benchmarks/trpo_update.py            # 16,000 samples, 5 repeats
     python benchmarks/trpo_update.py --samples 2000 --repeats 3   # quick check
+    python benchmarks/trpo_update.py --samples 5000 --fisher-fraction 0.2   # and ours on a fifth
 """
 
 from __future__ import annotations
@@ -98,9 +99,8 @@ def timed(function: Callable[..., T], *args: object) -> tuple[float, float, T]:
 class OurUpdate:
     """Our TRPOUpdater on fresh TensorDict batches; ``run()`` times one update."""
 
-    name = "ours"
-
-    def __init__(self, samples: int) -> None:
+    def __init__(self, samples: int, fisher_fraction: float = 1.0) -> None:
+        self.name = "ours" if fisher_fraction == 1.0 else f"ours, Fisher on {fisher_fraction:g}"
         torch.manual_seed(0)
         self.envs = max(samples // 1000, 1)
         self.steps = samples // self.envs
@@ -108,7 +108,8 @@ class OurUpdate:
         self.actor = make_actor(OBSERVATION_DIM, ACTION_DIM, **NETWORK)
         loss = TRPOLoss(self.actor, make_critic(OBSERVATION_DIM, **NETWORK))
         loss.make_value_estimator(gamma=RETURNS["gamma"], lmbda=RETURNS["gae_lambda"])
-        self.updater = TRPOUpdater(loss, trust_region=TRUST_REGION, **UPDATE, generator=self.generator)
+        trust_region = dataclasses.replace(TRUST_REGION, fisher_fraction=fisher_fraction)
+        self.updater = TRPOUpdater(loss, trust_region=trust_region, **UPDATE, generator=self.generator)
 
     def run(self) -> tuple[float, float, str]:
         batch = random_rollout(self.envs, self.steps, self.generator)
@@ -200,6 +201,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--samples", type=int, default=16_000, help="transitions per batch")
     parser.add_argument("--repeats", type=int, default=5, help="timed updates after a warm-up")
+    parser.add_argument("--fisher-fraction", type=float, default=None,
+                        help="also time ours with the Fisher products on this share of the batch (algo.fisher_fraction)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", category=UserWarning)
@@ -207,6 +210,8 @@ def main() -> None:
     print(f"batch: {args.samples} samples, obs {OBSERVATION_DIM}, action {ACTION_DIM}")
     print("settings (both): " + ", ".join(f"{k}={v}" for k, v in SETTINGS.items()))
     contenders = [SB3Update(args.samples), OurUpdate(args.samples)]
+    if args.fisher_fraction is not None:
+        contenders.append(OurUpdate(args.samples, args.fisher_fraction))
     wall: dict[str, list[float]] = {c.name: [] for c in contenders}
     cpu: dict[str, list[float]] = {c.name: [] for c in contenders}
     # Alternate the two, so load from other processes on a shared machine hits both alike.
@@ -214,7 +219,7 @@ def main() -> None:
         for contender in contenders:
             elapsed, cpu_elapsed, note = contender.run()
             label = "warm-up" if repeat == 0 else f"rep {repeat}"
-            print(f"  {contender.name:4s} {label:7s}: {elapsed:.3f} s wall, {cpu_elapsed:.3f} s cpu  {note}")
+            print(f"  {contender.name} {label:7s}: {elapsed:.3f} s wall, {cpu_elapsed:.3f} s cpu  {note}")
             if repeat > 0:
                 wall[contender.name].append(elapsed)
                 cpu[contender.name].append(cpu_elapsed)
@@ -224,6 +229,9 @@ def main() -> None:
     print(f"unipolicy_rl TRPOUpdater.update() median: {median_wall['ours']:.3f} s wall, {median_cpu['ours']:.3f} s cpu")
     print(f"cpu-time ratio (ours/sb3): {median_cpu['ours'] / median_cpu['sb3']:.3f}")
     print(f"trpo_update_ratio: {median_wall['ours'] / median_wall['sb3']:.3f}")
+    if args.fisher_fraction is not None:
+        name = contenders[-1].name
+        print(f"{name} / ours, cpu-time ratio: {median_cpu[name] / median_cpu['ours']:.3f}")
 
 
 if __name__ == "__main__":

@@ -274,7 +274,8 @@ def _critic_fit_runs_here(cfg: DictConfig) -> str | None:
                 "which the fit's process takes over; use algo.critic_fit=inline or lagged")
     if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit != "inline" and cfg.source.kind == "model"
             and cfg.imagination.train_on_real):
-        default = " (source=moe's default)" if cfg.source.get("critic_fit") == cfg.algo.critic_fit else ""
+        default = (f" (source={cfg.source.get('name', cfg.source.kind)}'s default)"
+                   if cfg.source.get("critic_fit") == cfg.algo.critic_fit else "")
         return (f"algo.critic_fit={cfg.algo.critic_fit}{default} with imagination.train_on_real=true: the update on "
                 f"each real batch would read a critic whose last fit is still pending; add algo.critic_fit=inline")
     if (cfg.algo.name in ON_POLICY_ALGOS and cfg.algo.critic_fit == "process"
