@@ -17,6 +17,7 @@ stopping rule says stop -> evaluation -> checkpoint. Ends with the saved policy 
 from __future__ import annotations
 
 import time
+from contextlib import closing
 from functools import partial
 from pathlib import Path
 
@@ -67,9 +68,9 @@ def main(cfg: DictConfig) -> dict:
     learner = make_learner(cfg, observation_dim, action_dim)
     model_based = cfg.source.kind == "model"
     real = make_real_collector(cfg, learner.policy, full_state=model_based)
-    # From here on, a failure anywhere still shuts the collector's worker processes down
-    # (else the interpreter waits for them forever on exit).
-    with real, RunLock(run_dir), naming_the_checkpoint_on_stall(run_dir / "checkpoint.pt"), \
+    # From here on, a failure anywhere still shuts the collector's worker processes and the
+    # learner's critic process down (else the interpreter waits for them on exit).
+    with real, closing(learner), RunLock(run_dir), naming_the_checkpoint_on_stall(run_dir / "checkpoint.pt"), \
             StopAtEpochEnd() as stop:
         world = make_world_model_parts(cfg, action_dim) if model_based else None
         if state is not None:

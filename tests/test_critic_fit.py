@@ -148,3 +148,28 @@ def test_a_real_batch_update_on_the_default_model_source_names_the_default_and_t
                                          r"imagination.train_on_real=true.*add algo.critic_fit=inline"):
         validate_config(composed("source=moe", "imagination.train_on_real=true"))
     validate_config(composed("source=moe", "imagination.train_on_real=true", "algo.critic_fit=inline"))
+
+
+def test_closing_the_learner_ends_its_critic_process_and_twice_is_harmless():
+    """train.py closes its learner when the run ends (or fails): the fit's process goes with it."""
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from unipolicy_rl.factories import make_learner
+
+    learner = make_learner(composed("source=moe", "algo.actor_hidden=[16]", "algo.critic_hidden=[16]"), 4, 2)
+    generator = torch.Generator().manual_seed(0)
+    batch = TensorDict(observation=torch.randn(2, 32, 4, generator=generator), batch_size=[2, 32])
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        learner.policy(batch)
+    done = torch.zeros(2, 32, 1, dtype=torch.bool)
+    done[:, -1] = True
+    batch["next"] = TensorDict(observation=torch.randn(2, 32, 4, generator=generator),
+                               reward=torch.randn(2, 32, 1, generator=generator), done=done,
+                               terminated=torch.zeros_like(done), batch_size=[2, 32])
+    learner.update(batch)
+    child = learner.updater.critic_process._process
+    assert child is not None and child.is_alive()  # the first fit runs beside the loop
+    learner.close()
+    assert not child.is_alive()
+    learner.close()

@@ -54,6 +54,12 @@ class Learner(Protocol):
     def load_state_dict(self, state: dict) -> None:
         ...
 
+    def close(self) -> None:
+        """Ends what the learner runs beside the loop (``algo.critic_fit=process``'s process), so a
+        run ends without waiting on an exit handler; idempotent, and a learner with nothing beside
+        it does nothing."""
+        ...
+
 
 def policy_state(actor: TensorDictModuleBase, statistics) -> dict:
     """A learner's :meth:`Learner.policy_state`: the actor's weights and the normaliser's statistics."""

@@ -351,6 +351,9 @@ class OffPolicyLearner:
         self.gradient_steps = int(state["gradient_steps"])
         self.owed_steps = float(state["owed_steps"])
 
+    def close(self) -> None:
+        """Nothing runs beside an off-policy learner."""
+
 
 def first_layer(network: nn.Module, kinds: type | tuple[type, ...]) -> tuple[tuple[str, ...], nn.Module]:
     """(its key in the network's parameters, as TorchRL's losses keep them, and the layer): the first

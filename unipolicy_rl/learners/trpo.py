@@ -144,3 +144,6 @@ class TRPOLearner:
                 raise KeyError("the checkpoint has no PPO policy optimizer ('clipped_step'): it was not saved by "
                                "algo=ppo; resume it with the algo it ran")
             self.updater.clipped_step.load_state_dict(state["clipped_step"])
+
+    def close(self) -> None:
+        self.updater.close()
