@@ -173,8 +173,8 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
 def test_a_modular_policy_trains_on_the_gait_clock_and_its_checkpoint_drives_a_clocked_env(tmp_path):
     from unipolicy_rl.envs.tokens import CLOCK
 
-    clocked = [*TINY, "robot=grammar", "policy=token_modular", "robot.split.train_size=3", "robot.split.held_out_size=2",
-               "robot.clock_frequency=1.5", "evaluation.every_steps=0"]
+    clocked = [*TINY, "robot=grammar", "policy=token_modular", "robot.split.train_size=3",
+               "robot.split.held_out_size=2", "robot.clock_frequency=1.5", "evaluation.every_steps=0"]
     run = run_train(*clocked, "epochs=1", f"hydra.run.dir={tmp_path}")
     assert run.returncode == 0, run.stderr
     loaded = load_policy(tmp_path / "checkpoint.pt")
