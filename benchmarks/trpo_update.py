@@ -202,7 +202,8 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=16_000, help="transitions per batch")
     parser.add_argument("--repeats", type=int, default=5, help="timed updates after a warm-up")
     parser.add_argument("--fisher-fraction", type=float, default=None,
-                        help="also time ours with the Fisher products on this share of the batch (algo.fisher_fraction)")
+                        help="also time ours with the Fisher products on this share of the batch "
+                             "(algo.fisher_fraction)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", category=UserWarning)
