@@ -273,3 +273,34 @@ def test_matched_steps_compare_each_robot_at_equal_real_steps_per_robot(tmp_path
     assert "| universal | 40,000 | 1.50 0.60 | 2.00 - | 1.50 m | 2.00 m (1 robots) | 75% | 0 of 1 |" in text
     with pytest.raises(ValueError, match=r"steps must be positive integers \(real env steps per robot\), got \[0\]"):
         table.compare_at_matched_steps(runs, [0], sides_of=lambda run: SIDES)
+
+
+def test_the_windows_benchmark_groups_evaluations_by_steps_per_training_robot(tmp_path, capsys):
+    """Two training robots and two held out (the run's own split): evaluations at 2,000 and 6,000
+    real steps fall in the first and second 2,000-step window per robot; one cut short (a robot
+    missing) is left out; the held-out mean and its range come from the robots past the training ones."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["robot=grammar", "policy=token_modular", "robot.split.train_size=3",
+                                           "robot.split.held_out_size=2", "robot.training_morphologies=2",
+                                           "evaluation.morphologies=all"])
+    run = tmp_path / "universal" / "seed0"
+    (run / ".hydra").mkdir(parents=True)
+    (run / "evaluation").mkdir()
+    cfg.run_name = "se-trpo"
+    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+    rows = [(2000, [1.0, 3.0, 0.5, -0.5]), (6000, [2.0, 4.0, 0.2, 0.6]), (8000, [9.0, 9.0, 9.0])]
+    with (run / "evaluation" / "periodic_morphologies.csv").open("w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(["epoch", "real_env_steps", "morphology", "mean_forward_displacement"])
+        for steps, values in rows:
+            writer.writerows([steps // 1000, steps, robot, value] for robot, value in enumerate(values))
+    spec = importlib.util.spec_from_file_location("morphology_windows", ROOT / "benchmarks" / "morphology_windows.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    trained, windows = benchmark.windows(run, 2000.0)
+    assert trained == 2
+    assert windows == [pytest.approx((0.0, 1, 2.0, 0.0, 0.0, 0.0)), pytest.approx((2000.0, 1, 3.0, 0.4, 0.4, 0.4))]
+    with pytest.raises(SystemExit, match="no evaluation/periodic_morphologies.csv"):
+        benchmark.seed_folder(tmp_path / "missing", 0)
