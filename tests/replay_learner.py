@@ -63,3 +63,6 @@ class ReplayLearner:
         self.statistics.copy_to(self.normalizer)
         self.buffer.load_state_dict(state["buffer"])
         self.gradient_steps = state["gradient_steps"]
+
+    def close(self) -> None:
+        """Nothing runs beside it."""

@@ -185,3 +185,14 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
     # preserve: the default refresh
     learner.refresh_observation_normalizer(_collected_batch(learner, torch.Generator().manual_seed(2)))
     assert float(learner.real_surrogate(batch).mean()) == pytest.approx(after_step, rel=1e-4)
+
+
+def test_a_registered_learner_that_lacks_part_of_the_interface_is_refused_by_name_before_training(tmp_path):
+    """A user's learner without ``close`` (say, written before it joined the interface) stops the run at
+    start-up with the missing names, not after its last epoch."""
+    patch = WITH_REPLAY_LEARNER + "del ReplayLearner.close\n"
+    result = run_train_with(patch, *TINY, "epochs=3", f"hydra.run.dir={tmp_path}")
+    assert result.returncode != 0
+    assert ("the learner of algo.name='trpo' (ReplayLearner) lacks close of the Learner interface"
+            in result.stderr), result.stderr[-2000:]
+    assert not (tmp_path / "metrics.csv").exists()  # nothing trained

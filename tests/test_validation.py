@@ -229,8 +229,9 @@ def test_a_specialist_run_trains_and_evaluates_on_one_morphology_of_its_side():
     assert morphology_env_kwargs(cfg, "train")["morphologies"] == split.train  # another side stays whole
 
 
-def test_a_fit_precision_other_than_float32_or_bfloat16_is_refused_at_start_up():
+def test_a_fit_precision_other_than_float32_bfloat16_or_auto_is_refused_at_start_up():
     validate_config(composed(["source=moe", "world_model.trainer.precision=bfloat16"]))
-    with pytest.raises(ValueError, match=r"world_model.trainer.*precision must be one of \['bfloat16', 'float32'\], "
-                                         r"got 'float16'"):
+    validate_config(composed(["source=moe", "world_model.trainer.precision=auto"]))
+    with pytest.raises(ValueError, match=r"world_model.trainer.*precision must be one of "
+                                         r"\['auto', 'bfloat16', 'float32'\], got 'float16'"):
         validate_config(composed(["source=moe", "world_model.trainer.precision=float16"]))

@@ -134,6 +134,24 @@ def test_a_bfloat16_fit_predicts_held_out_data_as_well_as_a_float32_one_and_keep
         ModelTrainer(precision="float16")
 
 
+def test_an_auto_precision_fit_runs_in_bfloat16_only_where_the_cpu_computes_in_it(monkeypatch):
+    """precision=auto: bfloat16 on a CPU with AVX512-BF16 or AMX (where it pays), float32 where autocast
+    would emulate it (about 3x slower) and on other devices; the report says which ran."""
+    from unipolicy_rl.world_models import trainer as trainer_module
+
+    for native in (False, True):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda native=native: native, raising=False)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+        assert trainer_module.fit_dtype("auto", "cpu") == (torch.bfloat16 if native else None)
+        torch.manual_seed(0)
+        model = GaussianEnsemble(TOY, action_dim=2, members=2, elites=1, hidden=(16,))
+        report = ModelTrainer(max_epochs=1, batch_size=128, precision="auto").fit(
+            model, toy_transitions(500, 0), torch.Generator().manual_seed(0))
+        assert report.extras["fit_bfloat16"] == float(native)
+    assert trainer_module.fit_dtype("auto", "cuda") is None  # unmeasured there: float32
+    assert trainer_module.fit_dtype("bfloat16", "cpu") == torch.bfloat16  # asked for by name: as asked
+
+
 def test_a_fit_budgeted_in_steps_stops_there_and_a_warm_model_keeps_improving_fit_after_fit():
     """max_steps caps a fit's gradient steps (mid-epoch); the weights carry over, so short fits add up."""
     torch.manual_seed(0)

@@ -286,9 +286,20 @@ def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPol
 
 
 def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:
-    """The learner ``algo.name`` names, sized for the env."""
+    """The learner ``algo.name`` names, sized for the env; one registered in :data:`LEARNERS` that
+    lacks a member of the :class:`Learner` interface is refused here, before any training."""
     check_settings(cfg, "algo.name")  # validation's rule (a direct caller may not have run validate_config)
-    return LEARNERS[cfg.algo.name](cfg, observation_dim, action_dim)
+    learner = LEARNERS[cfg.algo.name](cfg, observation_dim, action_dim)
+    missing = [name for name in LEARNER_MEMBERS if not hasattr(learner, name)]
+    if missing:
+        raise TypeError(f"the learner of algo.name={cfg.algo.name!r} ({type(learner).__name__}) lacks "
+                        f"{', '.join(missing)} of the Learner interface (unipolicy_rl.learners.Learner)")
+    return learner
+
+
+# What a learner must have: the interface's attributes and methods, read off the protocol itself.
+LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Learner).items()
+                                               if callable(member) and not name.startswith("_")))
 
 
 def make_trust_region(cfg: DictConfig) -> TrustRegion:

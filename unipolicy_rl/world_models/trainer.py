@@ -27,8 +27,25 @@ from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 TRANSITION_KEYS = ("state", "action", "design", "next_state")
 # Marks a transition that began an episode (the buffer keeps each epoch's episodes whole and in order).
 EPISODE_START = "episode_start"
-# ModelTrainer.precision: the autocast dtype of a fit's training steps (None: none, float32 throughout).
-PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16}
+# ModelTrainer.precision: the autocast dtype of a fit's training steps (None: none, float32 throughout);
+# "auto" is bfloat16 where the fit runs on a CPU with bfloat16 instructions, float32 elsewhere (fit_dtype).
+PRECISIONS = {"float32": None, "bfloat16": torch.bfloat16, "auto": None}
+
+
+def native_bfloat16(device: torch.device | str) -> bool:
+    """Whether ``device`` is a CPU that computes in bfloat16 itself (AVX512-BF16 or AMX): there a
+    bfloat16 fit step takes about 0.7x a float32 one; where autocast emulates them, about 3x."""
+    if torch.device(device).type != "cpu":
+        return False
+    checks = (getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None))
+    return any(check is not None and check() for check in checks)
+
+
+def fit_dtype(precision: str, device: torch.device | str) -> torch.dtype | None:
+    """The autocast dtype ``precision`` gives a fit on ``device`` (None: float32 throughout)."""
+    if precision == "auto":
+        return torch.bfloat16 if native_bfloat16(device) else None
+    return PRECISIONS[precision]
 
 
 @dataclass
@@ -115,9 +132,12 @@ class ModelTrainer:
             every core.
         precision: ``"float32"``, or ``"bfloat16"`` for the training steps' forward and backward
             passes under autocast (the weights, Adam's state, the loss's last steps and every
-            validation check stay float32). The fit is about half of a model-based epoch's work;
-            on our 2-core CPU a bfloat16 training step took 0.68x a float32 one at the same
-            validation error (``benchmarks/fit_precision.py``, docs/results.md).
+            validation check stay float32), or ``"auto"``: bfloat16 where the fit runs on a CPU
+            with bfloat16 instructions (:func:`native_bfloat16`), float32 elsewhere. The fit is
+            about half of a model-based epoch's work; on CPUs with those instructions a bfloat16
+            training step took 0.68-0.73x a float32 one at the same validation error
+            (``benchmarks/fit_precision.py``, docs/results.md); without them, about 3x.
+            The report's ``fit_bfloat16`` extra says which ran.
     """
 
     learning_rate: float = 1e-3
@@ -181,7 +201,7 @@ class ModelTrainer:
         validation_index, validation_mask = (t.to(device) for t in _padded(validation_sets))
 
         optimizer = torch.optim.Adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
-        dtype = PRECISIONS[self.precision]
+        dtype = fit_dtype(self.precision, device)
         autocast = (contextlib.nullcontext if dtype is None
                     else lambda: torch.autocast(device_type=device.type, dtype=dtype))
         member_parameters = model.member_parameters()
@@ -227,7 +247,8 @@ class ModelTrainer:
                 parameter.copy_(kept)
         model.set_elites(best_error)
         return FitReport(epochs_run, train_loss, best_error.cpu(), model.elite_members, int((~has_data).sum()),
-                         time.perf_counter() - started, extras={"fit_steps": float(steps)})
+                         time.perf_counter() - started,
+                         extras={"fit_steps": float(steps), "fit_bfloat16": float(dtype is torch.bfloat16)})
 
 
 def _minibatches(train_sets: list[torch.Tensor], batch_size: int, epochs: int,
