@@ -56,8 +56,10 @@ VARIANTS: dict[tuple[str, str], dict[str, object]] = {
     ("robot/grammar.yaml", "split.train_limits"): {"segments": [2, 4], "leg_pairs": [1, 2]},  # split's TRAIN_LIMITS
     ("robot/grammar.yaml", "physics"): {"max_joint_speed": 10.0},  # the vertebrate's, with servos' top speed
     ("robot/grammar.yaml", "reward"): {},
-    # the default MOE's fits: checks every 25 steps on 2,000 held-out rows, flat in the buffer; two threads
-    ("world_model/moe.yaml", "trainer"): {"check_every": 25, "validation_rows": 2000, "num_threads": 2},
+    # the default MOE's fits: checks every 25 steps on 2,000 held-out rows, flat in the buffer; two threads;
+    # bfloat16 where the CPU computes in it
+    ("world_model/moe.yaml", "trainer"): {"check_every": 25, "validation_rows": 2000, "num_threads": 2,
+                                          "precision": "auto"},
     ("world_model/pce_thesis.yaml", "trainer"): {"oversampling": 20.0},  # the thesis PCE's correlated samples
     ("world_model/pce_sparse.yaml", "trainer"): {},
 }

@@ -20,6 +20,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from unipolicy_rl.objectives.trpo import TRPOLoss
+from unipolicy_rl.optimizers import adam
 
 __all__ = ["CriticFitResult", "explained_variance", "fit_critic", "make_critic_optimizer"]
 
@@ -50,16 +51,10 @@ class CriticFitResult:
 
 
 def make_critic_optimizer(loss_module: TRPOLoss, lr: float = 1e-3) -> torch.optim.Adam:
-    """Adam over the critic parameters only (the policy moves by the natural gradient alone).
-
-    Uses the fused Adam kernel where available: with small networks and about a thousand
-    minibatch steps per update, per-tensor optimizer overhead is a large share of the time.
-    """
-    params = loss_module.critic_parameters()
-    try:
-        return torch.optim.Adam(params, lr=lr, fused=True)
-    except (RuntimeError, TypeError):
-        return torch.optim.Adam(params, lr=lr)
+    """Adam over the critic parameters only (the policy moves by the natural gradient alone),
+    on the fused kernel where there is one: with small networks and about a thousand minibatch
+    steps per update, per-tensor optimizer overhead is a large share of the time."""
+    return adam(loss_module.critic_parameters(), lr=lr)
 
 
 def fit_critic(

@@ -21,6 +21,7 @@ from typing import Protocol
 import torch
 from tensordict import TensorDictBase
 
+from unipolicy_rl.optimizers import adam
 from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 
 # Keys of a transition batch (one real step each), as the replay buffer stores them.
@@ -200,7 +201,7 @@ class ModelTrainer:
             validation_sets = [_subset(rows, self.validation_rows, generator) for rows in validation_sets]
         validation_index, validation_mask = (t.to(device) for t in _padded(validation_sets))
 
-        optimizer = torch.optim.Adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
+        optimizer = adam(model.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
         dtype = fit_dtype(self.precision, device)
         autocast = (contextlib.nullcontext if dtype is None
                     else lambda: torch.autocast(device_type=device.type, dtype=dtype))
