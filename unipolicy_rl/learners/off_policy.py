@@ -50,7 +50,6 @@ from unipolicy_rl.observation_statistics import (
     reexpress_weights,
     refresh_normalizer,
 )
-from unipolicy_rl.optimizers import adam
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION
 
 LOSSES = ("sac", "crossq", "redq")
@@ -212,11 +211,11 @@ class OffPolicyLearner:
         self.model_based = model_based
         self.loss = make_loss(settings, actor, observation_dim, action_dim)
         betas = tuple(settings.adam_betas)
-        self.actor_optimizer = adam(self.loss.actor_network_params.flatten_keys().values(),
+        self.actor_optimizer = torch.optim.Adam(self.loss.actor_network_params.flatten_keys().values(),
                                                 lr=settings.learning_rate, betas=betas)
-        self.critic_optimizer = adam(self.loss.qvalue_network_params.flatten_keys().values(),
+        self.critic_optimizer = torch.optim.Adam(self.loss.qvalue_network_params.flatten_keys().values(),
                                                  lr=settings.learning_rate, betas=betas)
-        self.alpha_optimizer = adam([self.loss.log_alpha], lr=settings.learning_rate, betas=betas)
+        self.alpha_optimizer = torch.optim.Adam([self.loss.log_alpha], lr=settings.learning_rate, betas=betas)
         self.target_update = (None if settings.target_update_rate is None
                               else SoftUpdate(self.loss, tau=settings.target_update_rate))
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(settings.buffer_capacity))
