@@ -1,6 +1,7 @@
 """The world model of grammar robots: link tokens in, per-token state change out; its imagined env."""
 
 import functools
+import math
 
 import pytest
 import torch
@@ -90,6 +91,20 @@ def test_the_model_fits_held_out_transitions_better_than_predicting_no_change():
     print(f"held-out unexplained share of the state change: model {error:.3f}, no change {baseline:.3f}")
     assert baseline > 0.99
     assert error < 0.9 * baseline
+
+
+def test_a_bfloat16_fit_of_the_token_model_learns_and_keeps_its_weights_in_float32():
+    """world_model.trainer.precision=auto fits the grammar's token ensemble in bfloat16 on a CPU that
+    computes in it: the token network's ops must run under autocast and still learn (a short fit
+    beats predicting no change on held-out episodes, as the float32 fit above does by more)."""
+    model = small_model()
+    report = ModelTrainer(max_epochs=1000, max_steps=100, check_every=50, patience=3, precision="bfloat16").fit(
+        model, buffered(0, 1, 3, 4), torch.Generator().manual_seed(0))
+    assert report.extras["fit_bfloat16"] == 1.0
+    assert all(p.dtype == torch.float32 for p in model.parameters())
+    held_out = buffered(2)
+    error = fresh_error(model, held_out)["model/fresh_error"]
+    assert math.isfinite(error) and error < 0.95 * no_change_error(held_out, LAYOUT.robot_size)
 
 
 def test_padding_changes_neither_a_robots_prediction_nor_its_loss():
