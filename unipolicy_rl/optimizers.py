@@ -2,8 +2,8 @@
 
 The fused kernel updates each parameter in one pass where the default CPU path runs about ten
 element-wise operations per tensor; the optimisers here step small networks thousands of times
-per epoch, so that share is large: 4.5 against 1.0 ms an Adam step for the default ensemble's
-weights on one core; a whole fit step 0.91x (``benchmarks/fit_precision.py``). The update is
+per epoch, so that share is large: a whole fit step of the default ensemble takes 0.91x the time
+(``benchmarks/fit_precision.py``, ``fit_fused_adam_ratio``). The update is
 Adam's own; only the order of its floating-point operations differs. The world model's fits and
 TRPO's critic fit use it; the off-policy learners keep torch's default kernel, since their steps
 gained nothing from it (SAC 67-69 gradient steps/s either way, ``benchmarks/learner_speed.py``).
