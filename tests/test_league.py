@@ -422,6 +422,28 @@ def test_a_run_still_going_is_counted_apart_from_one_that_finished_without_the_l
     assert "unfinished" in league.format_runs(se).splitlines()[1]
 
 
+def test_the_median_is_bounded_below_by_what_the_unfinished_runs_can_still_reach(tmp_path):
+    """Three runs still going, each evaluated up to 20,000: one walks from 4,000 on, one has not
+    walked, one walks at its last two evaluations (18,000 and 20,000). (b)'s median is not known
+    yet (two runs have no streak of three), but it is at least 18,000 however they go on: the
+    streak in progress could be completed at 18,000, the other run can walk only after 20,000."""
+    segments = {0: [(0, 1.0, 0.0), (4000, 3.5, 1.5)], 1: [(0, 1.0, 0.0)], 2: [(0, 1.0, 0.0), (18_000, 3.5, 1.5)]}
+    runs = []
+    for seed, walks in segments.items():
+        path = write_run(tmp_path, "se-sac", "real", seed, walks, 20_000)
+        runs.append(league.run_result(load_run(path, path.name)))
+    assert [league.earliest_still_possible(run.evaluations, "stays_walking") for run in runs[1:]] == [20_000, 18_000]
+    stays = league.level_stats(runs, "stays_walking", resamples=100)
+    assert (stays.reached, stays.unfinished, stays.steps, stays.steps_at_least) == (1, 2, math.inf, 18_000)
+    first = league.level_stats(runs, "first_walk", resamples=100)
+    assert (first.steps, first.steps_at_least) == (18_000, 18_000)  # known: the runs' own first walks decide it
+    table = league.format_league(league.make_entries(runs, resamples=100))
+    assert "not reached [4,000, not reached] (>= 18,000 so far)" in table
+    finished = league.level_stats([dataclasses.replace(run, finished=True) for run in runs], "stays_walking",
+                                  resamples=100)
+    assert (finished.unfinished, finished.steps_at_least) == (0, finished.steps)  # nothing left to go on
+
+
 def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep, tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("league_archive", ROOT / "benchmarks" / "league_archive.py")
     archive = importlib.util.module_from_spec(spec)

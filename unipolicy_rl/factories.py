@@ -277,6 +277,10 @@ LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
     **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
 }
 
+# What a learner must have: the interface's attributes and methods, read off the protocol itself.
+LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Learner).items()
+                                               if callable(member) and not name.startswith("_")))
+
 
 def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPolicySettings:
     """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
@@ -295,11 +299,6 @@ def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Lear
         raise TypeError(f"the learner of algo.name={cfg.algo.name!r} ({type(learner).__name__}) lacks "
                         f"{', '.join(missing)} of the Learner interface (unipolicy_rl.learners.Learner)")
     return learner
-
-
-# What a learner must have: the interface's attributes and methods, read off the protocol itself.
-LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Learner).items()
-                                               if callable(member) and not name.startswith("_")))
 
 
 def make_trust_region(cfg: DictConfig) -> TrustRegion:

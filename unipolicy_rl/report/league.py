@@ -23,7 +23,10 @@ many runs reached it, the median real env steps (and wall and CPU seconds) with 
 reached it counting as longer than any that did (``inf``), a percentile-bootstrap 95% interval
 of that median (runs resampled with replacement, seeded; a bound may be ``inf``: "not
 reached"), and how many times fewer real env steps it took than SE-TRPO and than the best
-model-free entry (the one with the smallest median at that level).
+model-free entry (the one with the smallest median at that level). While some runs are still
+going, the median is provisional; beside it the table prints what it is already known to be at
+least, each unfinished run counted at the earliest it could still reach the level: the bound
+that says when a comparison is decided and the remaining runs can be cut.
 """
 
 from __future__ import annotations
@@ -99,6 +102,24 @@ def se_trpo_final(evaluations: Sequence[Evaluation]) -> Evaluation | None:
 def at_milestone(evaluations: Sequence[Evaluation], steps: float) -> Evaluation | None:
     """(d) The first evaluation at or after ``steps`` real env steps; None if the run did not get there."""
     return next((e for e in evaluations if e.steps >= steps), None)
+
+
+def earliest_still_possible(evaluations: Sequence[Evaluation], key: str) -> float:
+    """The fewest real env steps at which a run still going, that has not reached level ``key``
+    yet, could still be found to reach it: its last evaluation's (the next comes later), or for
+    (b) the first evaluation of the walking streak it ends on (two more walking evaluations would
+    complete it there); 0 before its first evaluation. A lower bound, never a guess."""
+    if not evaluations:
+        return 0.0
+    if key == "stays_walking":
+        streak = 0
+        for e in reversed(evaluations):
+            if not walks_the_grid(e.grid_mean, e.grid_min):
+                break
+            streak += 1
+        if streak:
+            return evaluations[-streak].steps
+    return evaluations[-1].steps
 
 
 @dataclass(frozen=True)
@@ -214,6 +235,10 @@ class LevelStats:
     seconds_interval: tuple[float, float]
     unfinished: int = 0  # runs that have not reached the level but have not trained to their budget either
     cpu_seconds: float = math.nan  # median CPU seconds; NaN when a run that reached the level did not log them
+    # What the median is already known to be at least, however the unfinished runs go on: each at
+    # the earliest it could still reach the level (:func:`earliest_still_possible`). = steps when
+    # no run is unfinished; what decides a comparison before the last runs end.
+    steps_at_least: float = math.nan
 
 
 @dataclass
@@ -236,13 +261,16 @@ def level_stats(runs: Sequence[RunResult], key: str, resamples: int = RESAMPLES,
     run is still going, the median and interval are provisional: ``unfinished`` counts those runs)."""
     found = [run.levels[key] for run in runs]
     steps = [e.steps if e is not None else math.inf for e in found]
+    at_least = [earliest_still_possible(run.evaluations, key) if e is None and not run.finished else value
+                for e, run, value in zip(found, runs, steps, strict=True)]
     seconds = [e.seconds if e is not None else math.inf for e in found]
     cpu = [e.cpu_seconds if e is not None else math.inf for e in found]
     return LevelStats(reached=sum(e is not None for e in found), runs=len(found),
                       steps=median(steps), steps_interval=bootstrap_interval(steps, resamples, seed),
                       seconds=median(seconds), seconds_interval=bootstrap_interval(seconds, resamples, seed),
                       unfinished=sum(e is None and not run.finished for e, run in zip(found, runs, strict=True)),
-                      cpu_seconds=math.nan if any(math.isnan(value) for value in cpu) else median(cpu))
+                      cpu_seconds=math.nan if any(math.isnan(value) for value in cpu) else median(cpu),
+                      steps_at_least=median(at_least))
 
 
 def make_entries(results: Sequence[RunResult], resamples: int = RESAMPLES, seed: int = BOOTSTRAP_SEED) -> list[Entry]:
@@ -328,6 +356,8 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
         for entry in entries:
             stats = entry.levels[level.key]
             steps = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
+            if stats.unfinished and stats.steps_at_least != stats.steps:
+                steps += f" (>= {format_count(stats.steps_at_least)} so far)"
             unfinished = f" ({stats.unfinished} unfinished)" if stats.unfinished else ""
             reached = f"{stats.reached}/{stats.runs}{unfinished}"
             lines.append(f"{entry.name:<{width}}  {reached:>18}  {steps:<44} "
@@ -345,7 +375,9 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
             else:
                 cells.append(f"- (0/{len(entry.runs)})")
         lines.append((f"{entry.name:<{width}}  " + "  ".join(f"{cell:<22}" for cell in cells)).rstrip())
-    lines += ["", "median wall s: wall seconds spent training (collecting, fitting, updating), the periodic "
+    lines += ["", "(>= N so far): while runs are unfinished, the median is at least N however they go on (each "
+              "counted at the earliest it could still reach the level)",
+              "median wall s: wall seconds spent training (collecting, fitting, updating), the periodic "
               "evaluations and checkpoints left out; median CPU s: the CPU seconds of the same spans, every core "
               "and the collector's worker processes counted (time/cpu; '-' where a run from before it did not "
               "log them)"]
@@ -382,8 +414,8 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
     with path.open("w", newline="") as file:
         writer = csv.writer(file)
         writer.writerow(["entry", "model_free", "runs", "level", "reached", "unfinished", "median_steps", "steps_low",
-                         "steps_high", "median_seconds", "seconds_low", "seconds_high", "median_cpu_seconds",
-                         f"fewer_than_{baseline}",
+                         "steps_high", "median_steps_at_least", "median_seconds", "seconds_low", "seconds_high",
+                         "median_cpu_seconds", f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
         for level in LEVELS:
@@ -391,8 +423,8 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
             for entry in entries:
                 stats = entry.levels[level.key]
                 writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.unfinished,
-                                 stats.steps,
-                                 *stats.steps_interval, stats.seconds, *stats.seconds_interval, stats.cpu_seconds,
+                                 stats.steps, *stats.steps_interval, stats.steps_at_least,
+                                 stats.seconds, *stats.seconds_interval, stats.cpu_seconds,
                                  fewer(reference.levels[level.key].steps, stats.steps) if reference else "",
                                  best.name if best else "", fewer(best.levels[level.key].steps, stats.steps)
                                  if best else ""])
