@@ -348,21 +348,25 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
                      f"{', '.join(str(seed) for seed in entry.seeds)}")
     for level in LEVELS:
         best = best_model_free(entries, level.key)
-        lines += ["", f"{level.label} {level.key}: {level.description}",
-                  f"{'entry':<{width}}  {'reached':>18}  {'median real steps [95% CI]':<44} {'median wall s':>13} "
-                  f"{'median CPU s':>12}  "
-                  f"{'vs ' + baseline:<17} vs best model-free ({best.name if best else 'none reached'})"]
         ratios = ratio_lines(entries, level.key, baseline)
+        rows = []
         for entry in entries:
             stats = entry.levels[level.key]
             steps = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
             if stats.unfinished and stats.steps_at_least != stats.steps:
                 steps += f" (>= {format_count(stats.steps_at_least)} so far)"
             unfinished = f" ({stats.unfinished} unfinished)" if stats.unfinished else ""
-            reached = f"{stats.reached}/{stats.runs}{unfinished}"
-            lines.append(f"{entry.name:<{width}}  {reached:>18}  {steps:<44} "
+            rows.append((entry.name, f"{stats.reached}/{stats.runs}{unfinished}", steps, stats))
+        reached_width = max([18, *(len(row[1]) for row in rows)])
+        steps_width = max([44, *(len(row[2]) + 1 for row in rows)])
+        lines += ["", f"{level.label} {level.key}: {level.description}",
+                  f"{'entry':<{width}}  {'reached':>{reached_width}}  {'median real steps [95% CI]':<{steps_width}} "
+                  f"{'median wall s':>13} {'median CPU s':>12}  "
+                  f"{'vs ' + baseline:<17} vs best model-free ({best.name if best else 'none reached'})"]
+        for name, reached, steps, stats in rows:
+            lines.append(f"{name:<{width}}  {reached:>{reached_width}}  {steps:<{steps_width}} "
                          f"{format_count(stats.seconds):>13} {format_count(stats.cpu_seconds):>12}  "
-                         f"{ratios[entry.name][0]:<17} {ratios[entry.name][1]}")
+                         f"{ratios[name][0]:<17} {ratios[name][1]}")
     lines += ["", "(d) the grid at the first evaluation at or after each milestone: median grid mean / median worst "
               "design (m), over the runs that got there"]
     lines.append((f"{'entry':<{width}}  " + "  ".join(f"{f'{steps:,} steps':<22}" for steps in MILESTONES)).rstrip())
