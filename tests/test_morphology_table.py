@@ -302,5 +302,8 @@ def test_the_windows_benchmark_groups_evaluations_by_steps_per_training_robot(tm
     trained, windows = benchmark.windows(run, 2000.0)
     assert trained == 2
     assert windows == [pytest.approx((0.0, 1, 2.0, 0.0, 0.0, 0.0)), pytest.approx((2000.0, 1, 3.0, 0.4, 0.4, 0.4))]
+    # in the run's real env steps in all: 2,000 and 6,000 fall in the 2,000-4,000 and 6,000-8,000 windows
+    _, in_total = benchmark.windows(run, 2000.0, per_robot=False)
+    assert [window[0] for window in in_total] == [2000.0, 6000.0]
     with pytest.raises(SystemExit, match="no evaluation/periodic_morphologies.csv"):
         benchmark.seed_folder(tmp_path / "missing", 0)
