@@ -48,12 +48,15 @@ def training_count(folder: Path) -> tuple[int, int]:
     return len(trained), len(evaluated)
 
 
-def windows(folder: Path, width: float, per_robot: bool = True) -> tuple[int, list[tuple[float, int, float, float,
-                                                                                      float, float]]]:
-    """(training robots, per window: start, evaluations, training mean, held-out mean, min, max).
+# A window: its first step, its evaluations, the training robots' mean, the held-out robots' mean, min, max.
+Window = tuple[float, int, float, float, float, float]
+
+
+def windows(folder: Path, width: float, per_robot: bool = True) -> tuple[int, list[Window]]:
+    """(training robots, its windows).
 
     Windows of real env steps per training robot (``per_robot``), or of the run's real env steps in
-    all: the first lines runs over 8, 16 or 32 robots up on what each robot got, the second on what
+    all: per robot, runs over 8, 16 or 32 robots compare on what each robot got; in all, on what
     the whole run cost."""
     trained, evaluated = training_count(folder)
     if evaluated <= trained:
