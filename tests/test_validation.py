@@ -100,7 +100,7 @@ def test_algo_name_is_one_rule_for_validation_and_the_learner_factory():
     from unipolicy_rl.factories import make_learner
 
     cfg = composed(["algo.name=a2c"])
-    names = r"\['crossq', 'ppo', 'redq', 'sac', 'trpo'\]"
+    names = r"\['crossq', 'distill', 'ppo', 'redq', 'sac', 'trpo'\]"
     with pytest.raises(ValueError, match=rf"algo.name must be one of {names}, got 'a2c'"):
         validate_config(cfg)
     with pytest.raises(ValueError, match=rf"algo.name must be one of {names}, got 'a2c'"):
@@ -160,8 +160,8 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
         ([*GRAMMAR, "policy=token_mlp", "source=moe", "world_model.model.embedding=0"],
          "world_model.model: embedding must be a positive integer, got 0"),
         ([*GRAMMAR, "policy=token_mlp", "algo=sac"],
-         "algo=sac with robot=grammar: the token policies are the on-policy learners' Gaussians, "
-         "use algo=trpo or algo=ppo"),
+         "algo=sac with robot=grammar: the token policies are Gaussians that only "
+         "algo=trpo or algo=ppo or algo=distill train"),
         (["policy.name=cnn"],
          r"policy.name must be one of \['mlp', 'token_mlp', 'token_modular', 'token_transformer'\], got 'cnn'"),
         (["algo.fisher_fraction=0"], r"algo: fisher_fraction must lie in \(0, 1\]"),

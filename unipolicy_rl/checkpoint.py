@@ -35,7 +35,7 @@ from unipolicy_rl.policy import (
     make_collecting_policy,
     make_observation_norm,
     make_policy_actor,
-    make_token_actor_critic,
+    make_token_actor,
     make_token_norm,
     pin_token_critic,
     policy_architecture,
@@ -89,7 +89,7 @@ def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim:
     ``observation_dim`` and ``action_dim`` are the policy's sizes: for a token policy the
     features per token ``F`` and the padded number of tokens ``L`` (what
     :func:`~unipolicy_rl.factories.probe_dimensions` reads off the env), so :func:`load_policy`
-    rebuilds it with ``make_token_actor_critic(cfg, F, L)``.
+    rebuilds it with ``make_token_actor(cfg, F, L)``.
     ``learner`` is a :class:`~unipolicy_rl.learners.Learner`, ``collector`` the real collector,
     ``world`` a model-based run's :class:`~unipolicy_rl.factories.WorldModelParts` (or None), and
     ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst).
@@ -362,7 +362,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     dims, loc, scale = (state["observation_dim"], state["action_dim"]), policy["observation_loc"], \
         policy["observation_scale"]
     if policy_architecture(cfg) in TOKEN_POLICIES:
-        actor, _ = make_token_actor_critic(cfg, *dims)
+        actor = make_token_actor(cfg, *dims)
         normalizer = make_token_norm(dims[0], loc, scale)
     else:
         actor = make_policy_actor(cfg, *dims)

@@ -33,6 +33,7 @@ from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.config import env_builder, morphology_env_kwargs
 from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
+from unipolicy_rl.learners.distillation import DistillationLearner, DistillationSettings, SpecialistTeachers
 from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
 from unipolicy_rl.learners.off_policy import check_model_based_imagination
 from unipolicy_rl.objectives import ClippedStep, ClippedSurrogate, TRPOLoss, TRPOUpdater, TrustRegion
@@ -43,6 +44,7 @@ from unipolicy_rl.policy import (
     make_collecting_policy,
     make_observation_norm,
     make_policy_actor,
+    make_token_actor,
     make_token_actor_critic,
     make_token_norm,
     policy_architecture,
@@ -270,11 +272,32 @@ def clipped_surrogate(cfg: DictConfig) -> ClippedSurrogate:
                             target_kl=algo.target_kl)
 
 
+def distillation_settings(cfg: DictConfig) -> DistillationSettings:
+    """Distillation's settings from ``algo`` (``conf/algo/distill.yaml``)."""
+    algo = cfg.algo
+    return DistillationSettings(teachers=tuple(str(path) for path in algo.teachers), learning_rate=algo.learning_rate,
+                                batch_size=algo.batch_size, updates_per_epoch=algo.updates_per_epoch,
+                                buffer_capacity=algo.buffer_capacity, normalizer_refresh=algo.normalizer_refresh)
+
+
+def make_distillation_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> DistillationLearner:
+    """DAgger from ``algo.teachers`` (specialists of the training morphologies) into the token
+    policy of ``cfg.policy``: the student's actor and normaliser as TRPO builds them, no critic."""
+    settings = distillation_settings(cfg)
+    teachers = SpecialistTeachers(morphology_env_kwargs(cfg), settings.teachers)
+    actor = make_token_actor(cfg, observation_dim, action_dim)
+    normalizer = make_token_norm(observation_dim)
+    return DistillationLearner(settings, actor, normalizer, make_collecting_policy(normalizer, actor),
+                               TokenObservationStatistics(observation_dim), teachers,
+                               torch.Generator().manual_seed(cfg.seed))
+
+
 # ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
 LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
     "trpo": make_trpo_learner,
     "ppo": make_trpo_learner,
     **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
+    "distill": make_distillation_learner,
 }
 
 # What a learner must have: the interface's attributes and methods, read off the protocol itself.
@@ -282,10 +305,12 @@ LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Lea
                                                if callable(member) and not name.startswith("_")))
 
 
-def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPolicySettings:
+def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPolicySettings | DistillationSettings:
     """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
     if cfg.algo.name == "trpo":
         return make_trust_region(cfg)
+    if cfg.algo.name == "distill":
+        return distillation_settings(cfg)
     return clipped_surrogate(cfg) if cfg.algo.name == "ppo" else off_policy_settings(cfg)
 
 

@@ -42,6 +42,10 @@ TOKEN_POLICIES = ("token_transformer", "token_mlp", "token_modular")
 # MLP and the token policies) with GAE and a critic fit: TRPO's natural-gradient step or PPO's
 # clipped epochs. The off-policy learners build their own tanh-Gaussian actor.
 ON_POLICY_ALGOS = ("trpo", "ppo")
+# ``algo.name`` of every learner that trains the token policies' Gaussians: the on-policy ones, and
+# ``distill``, which regresses the policy's mean on specialists' actions (the actor only, no
+# critic), so a distilled policy is the same network a TRPO run can go on training.
+TOKEN_POLICY_ALGOS = (*ON_POLICY_ALGOS, "distill")
 # ``policy.critic`` of a token policy: the state value GAE and the critic fit use. ``transformer``:
 # its own token transformer, of ``policy.critic_network``'s sizes (unset: ``policy.network``'s);
 # ``pooled``: the pooled token MLP (Deep Sets) of ``algo.critic_hidden``; ``padded_mlp``: the
@@ -145,33 +149,35 @@ def reads_the_clock(cfg: DictConfig) -> bool:
 
 
 def make_token_actor_critic(cfg: DictConfig, token_features: int, max_tokens: int):
-    """TRPO's actor and critic for ``cfg.policy`` (``token_transformer``, ``token_mlp`` or ``token_modular``, and
-    ``policy.critic``), reading the normalised tokens, the token mask and parents, and (the
-    actor) the action mask.
+    """TRPO's actor (:func:`make_token_actor`) and critic (:func:`make_token_critic`) for
+    ``cfg.policy``, both reading the normalised tokens."""
+    token_critic(cfg)  # a bad critic name fails before any network is built
+    return make_token_actor(cfg, token_features, max_tokens), make_token_critic(cfg, token_features, max_tokens)
+
+
+def make_token_actor(cfg: DictConfig, token_features: int, max_tokens: int) -> TensorDictModuleBase:
+    """The Gaussian policy of ``cfg.policy`` (``token_transformer``, ``token_mlp`` or
+    ``token_modular``), reading the normalised tokens, the token mask and parents, and the action mask.
 
     ``token_features`` (``F``) and ``max_tokens`` (``L``, the padding) come from the env's specs.
     The transformer's sizes are ``cfg.policy.network``; the padded MLP and the modular policy take
-    ``algo``'s actor hidden sizes and activation; all start at ``algo.init_log_std``. The critic:
-    :func:`make_token_critic`.
+    ``algo``'s actor hidden sizes and activation; all start at ``algo.init_log_std``.
     """
     architecture = policy_architecture(cfg)
     if architecture not in TOKEN_POLICIES:
-        raise ValueError(f"make_token_actor_critic builds {TOKEN_POLICIES}, got policy={architecture}")
+        raise ValueError(f"make_token_actor builds {TOKEN_POLICIES}, got policy={architecture}")
     algo = cfg.algo
-    if algo.get("name", "trpo") not in ON_POLICY_ALGOS:
-        raise ValueError(f"the token policies are Gaussian policies for {' or '.join(ON_POLICY_ALGOS)}, "
+    if algo.get("name", "trpo") not in TOKEN_POLICY_ALGOS:
+        raise ValueError(f"the token policies are Gaussian policies for {' or '.join(TOKEN_POLICY_ALGOS)}, "
                          f"not for algo={algo.name}")
-    token_critic(cfg)  # a bad critic name fails before any network is built
     if architecture == "token_transformer":
-        actor = make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,
-                                             max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
-    elif architecture == "token_modular":
-        actor = make_modular_actor(token_features, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
-                                   tokens_key=NORMALIZED_TOKENS, clock=reads_the_clock(cfg))
-    else:
-        actor = make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
-                                      algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
-    return actor, make_token_critic(cfg, token_features, max_tokens)
+        return make_token_transformer_actor(token_features, instantiate(cfg.policy.network), algo.init_log_std,
+                                            max_tokens=max_tokens, tokens_key=NORMALIZED_TOKENS)
+    if architecture == "token_modular":
+        return make_modular_actor(token_features, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
+                                  tokens_key=NORMALIZED_TOKENS, clock=reads_the_clock(cfg))
+    return make_padded_mlp_actor(token_features, max_tokens, tuple(algo.actor_hidden), algo.activation,
+                                 algo.init_log_std, tokens_key=NORMALIZED_TOKENS)
 
 
 def make_token_critic(cfg: DictConfig, token_features: int, max_tokens: int) -> ValueOperator:

@@ -33,7 +33,7 @@ from unipolicy_rl.envs.tokens import MORPHOLOGY
 from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.objectives.updater import CRITIC_FITS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
-from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, token_critic
+from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, TOKEN_POLICY_ALGOS, token_critic
 
 # The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
 # have their advantages standardised together.
@@ -157,7 +157,11 @@ _ON_POLICY_RULES: dict[str, Callable[[object], str | None]] = {
 }
 # algo.name -> rules of the keys only that learner reads. TRPO's trust region, PPO's clipped step and
 # an off-policy learner's settings are dataclasses that check themselves (factories.learner_settings).
-ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {name: _ON_POLICY_RULES for name in ON_POLICY_ALGOS}
+ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
+    **{name: _ON_POLICY_RULES for name in ON_POLICY_ALGOS},
+    # (distillation's own numbers and teachers: DistillationSettings checks them)
+    "distill": {"algo.init_log_std": _number(-20.0, 5.0)},
+}
 
 
 def _equal_shares(cfg: DictConfig) -> str | None:
@@ -212,9 +216,22 @@ def _token_critic_builds(cfg: DictConfig) -> str | None:
 
 
 def _grammar_learns_on_policy(cfg: DictConfig) -> str | None:
-    if robot_kind(cfg) == "grammar" and cfg.algo.name not in ON_POLICY_ALGOS:
-        return (f"algo={cfg.algo.name} with robot=grammar: the token policies are the on-policy learners' "
-                f"Gaussians, use algo={' or algo='.join(ON_POLICY_ALGOS)}")
+    if robot_kind(cfg) == "grammar" and cfg.algo.name not in TOKEN_POLICY_ALGOS:
+        return (f"algo={cfg.algo.name} with robot=grammar: the token policies are Gaussians that only "
+                f"algo={' or algo='.join(TOKEN_POLICY_ALGOS)} train")
+    return None
+
+
+def _distillation_has_specialists(cfg: DictConfig) -> str | None:
+    """Distillation teaches a token policy the specialists of grammar robots, on real steps."""
+    if cfg.algo.name != "distill":
+        return None
+    if robot_kind(cfg) != "grammar":
+        return (f"algo=distill teaches a token policy the specialists of robot=grammar's morphologies, and "
+                f"robot={robot_kind(cfg)} is one robot: train it with algo=trpo")
+    if cfg.source.kind != "real":
+        return (f"algo=distill labels the student's real steps with its specialists' actions; "
+                f"source={cfg.source.get('name', cfg.source.kind)} trains on a world model's: use source=se")
     return None
 
 
@@ -295,6 +312,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot", "policy.name", "source.kind"): _clock_is_read,
     ("policy",): _token_critic_builds,
     ("robot", "algo.name"): _grammar_learns_on_policy,
+    ("robot", "algo.name", "source.kind"): _distillation_has_specialists,
     ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
     ("algo", "source"): _critic_fit_runs_here,
