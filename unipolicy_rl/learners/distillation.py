@@ -62,7 +62,7 @@ class DistillationSettings:
     teachers: tuple[str, ...]
     learning_rate: float = 1e-3
     batch_size: int = 256
-    updates_per_epoch: int = 200
+    updates_per_epoch: int = 50
     buffer_capacity: int = 20_000
     normalizer_refresh: str = "preserve"
 
