@@ -23,7 +23,9 @@ The runs are niced (``--nice``) so that work in the foreground keeps the cores i
 ``--carry-checkpoints MIB`` also archives each unfinished run's checkpoint where it is at most that many MiB
 (an on-policy run's, about 1 MB; not a replay buffer's), and restores a run whose folder has no
 checkpoint from the archive's before it starts: a study whose machine is taken back, its run
-folders with it, resumes from the committed archive on the next machine.
+folders with it, resumes from the committed archive on the next machine. A finished run's
+checkpoint leaves the archive and its final policy alone stays, as ``policy.pt`` (what
+``algo=distill`` learns from).
 ``--stop-after MINUTES`` stops the queue that long after it started, as SIGTERM would (runs end at
 their epoch's end with a checkpoint, and are archived): on a machine lent for a fixed time, the
 records are final before it goes.

@@ -502,12 +502,19 @@ torch.save({"epoch": epoch}, folder / "checkpoint.pt")
         restore_run(kept, folder)
     with pytest.raises(SystemExit):
         queue.main(arguments[:-2] + ["--carry-checkpoints", "1"])  # no --archive to carry them in
-    # Finished (its final evaluation written), a run has nothing to resume: the archive drops its checkpoint.
+    # Finished (its final evaluation written), a run has nothing to resume: the archive drops its checkpoint
+    # and keeps its final policy alone, for runs that learn from it.
     (folder / "evaluation").mkdir()
     (folder / queue.FINAL_EVALUATION).write_text("design\n")
+    torch.save({"epoch": 3, "policy": {"actor": torch.ones(2)}, "learner": {"critic": torch.ones(2)}},
+               folder / "checkpoint.pt")
     files = archive_run(folder, kept, checkpoint_limit=2**20)
     assert Path("checkpoint.pt") not in files and not (kept / "checkpoint.pt").exists()
     assert (kept / queue.FINAL_EVALUATION).is_file()
+    policy = torch.load(kept / "policy.pt")
+    assert Path("policy.pt") in files and policy["resumable"] is False and "learner" not in policy
+    assert torch.equal(policy["policy"]["actor"], torch.ones(2))
+    assert Path("policy.pt") not in archive_run(folder, tmp_path / "plain")  # not carrying: no policy either
 
 
 def test_a_queue_past_its_stop_time_starts_no_run(tmp_path, capsys):

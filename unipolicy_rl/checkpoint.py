@@ -114,6 +114,16 @@ def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim:
     return state
 
 
+# What a checkpoint holds beyond the policy: the state a run continues from.
+RUN_STATE = ("learner", "collector", "world_model", "replay_buffer")
+
+
+def policy_only(state: dict) -> dict:
+    """``state`` without what only a resume needs (:data:`RUN_STATE`), marked not resumable: the
+    policy, its config and sizes, which :func:`load_policy` reads."""
+    return {**{key: value for key, value in state.items() if key not in RUN_STATE}, "resumable": False}
+
+
 def check_resumable(state: dict, path: str | Path) -> None:
     if not state.get("resumable", True):
         raise ValueError(f"{str(path)!r} holds a policy only (the best periodic evaluation's), not a run to "

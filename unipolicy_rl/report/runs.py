@@ -33,6 +33,9 @@ CONFIG = Path(".hydra") / "config.yaml"
 HYDRA_CONFIG = Path(".hydra") / "hydra.yaml"
 OVERRIDES = Path(".hydra") / "overrides.yaml"
 CHECKPOINT = "checkpoint.pt"
+# A finished run's final policy alone (no learner, collector or world model state: not resumable),
+# what an archive carrying checkpoints keeps of it, for runs that build on it (algo=distill's teachers).
+POLICY = "policy.pt"
 DESIGNS = Path("evaluation") / "designs.csv"
 SWEEP_FILE = "multirun.yaml"  # Hydra writes it at the root of every multirun
 RUN_MARKERS = (CONFIG, Path(METRICS), Path(CHECKPOINT))
@@ -190,7 +193,9 @@ def archive_run(run: Path, destination: Path, checkpoint_limit: int = 0) -> list
     policy, a critic, the observation statistics: about 1 MB); an off-policy or model-based one
     holds its replay buffer (tens to hundreds of MB) and stays behind. A finished run (its final
     evaluation written) has nothing left to resume: its archived checkpoint is removed, so the
-    archive holds checkpoints only while their runs are under way.
+    archive holds checkpoints only while their runs are under way, and its final policy alone is
+    kept as ``policy.pt`` (:func:`~unipolicy_rl.checkpoint.policy_only`, a few hundred kB): what
+    a later run learns from, as ``algo=distill`` from specialists.
     """
     if checkpoint_limit < 0:
         raise ValueError(f"checkpoint_limit must be >= 0 bytes, got {checkpoint_limit!r}")
@@ -204,6 +209,14 @@ def archive_run(run: Path, destination: Path, checkpoint_limit: int = 0) -> list
         _copy_whole(run / name, destination / name)
     if finished:
         (destination / CHECKPOINT).unlink(missing_ok=True)
+        if checkpoint_limit and checkpoint.is_file():
+            import torch
+
+            from unipolicy_rl.checkpoint import policy_only, save_checkpoint
+
+            state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+            save_checkpoint(destination / POLICY, policy_only(state))
+            files.append(Path(POLICY))
     return files
 
 
