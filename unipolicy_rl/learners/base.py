@@ -66,6 +66,15 @@ def policy_state(actor: TensorDictModuleBase, statistics) -> dict:
     return {"actor": actor.state_dict(), "observation_loc": statistics.loc, "observation_scale": statistics.scale}
 
 
+def raw_observation_keys(normalizer: TensorDictModuleBase, *networks: TensorDictModuleBase) -> tuple[NestedKey, ...]:
+    """The raw keys a policy reads: the normaliser's input, then the networks' other inputs (masks,
+    parents), in order and once each. A refresh's probe and a learner's ``batch_keys`` must carry
+    all of them, or the networks meet a batch without their masks."""
+    normalized = set(normalizer.out_keys)
+    readers = [key for network in networks for key in network.in_keys if key not in normalized]
+    return tuple(dict.fromkeys([*normalizer.in_keys, *readers]))
+
+
 def observation_probe(observations: torch.Tensor) -> TensorDict:
     """``observations`` ``[..., size]`` as a flat batch of raw ``observation``: what a refresh
     compares the policy on, before and after."""

@@ -33,7 +33,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKENS
-from unipolicy_rl.learners.base import policy_state
+from unipolicy_rl.learners.base import policy_state, raw_observation_keys
 from unipolicy_rl.observation_statistics import REFRESH_MODES, ObservationStatistics, refresh_normalizer
 
 TEACHER_ACTION = "teacher_action"
@@ -171,9 +171,7 @@ class DistillationLearner:
         self.actor, self.normalizer, self.policy, self.statistics = actor, normalizer, policy, statistics
         self.teachers = teachers
         self.statistics_keys = tuple(statistics_keys)
-        normalized = set(normalizer.out_keys)
-        self.observation_keys = tuple(dict.fromkeys([*normalizer.in_keys, *(key for key in actor.in_keys
-                                                                             if key not in normalized)]))
+        self.observation_keys = raw_observation_keys(normalizer, actor)
         self.batch_keys = tuple(dict.fromkeys((*self.observation_keys, MORPHOLOGY)))
         self.optimizer = torch.optim.Adam(actor.parameters(), lr=settings.learning_rate)
         self.generator = generator

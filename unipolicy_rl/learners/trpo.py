@@ -22,7 +22,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.learners.base import StalledLearning, policy_state
+from unipolicy_rl.learners.base import StalledLearning, policy_state, raw_observation_keys
 from unipolicy_rl.objectives import TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 
@@ -58,11 +58,7 @@ class TRPOLearner:
         self.normalizer_refresh = normalizer_refresh
         self.max_consecutive_skips = max_consecutive_skips
         self.statistics_keys = tuple(statistics_keys)
-        # The raw observation keys the policy reads: the normaliser's input, and the actor's and
-        # critic's other inputs (masks, parents), which the probe of a refresh must carry too.
-        normalized = set(normalizer.out_keys)
-        readers = [key for network in (actor, critic) for key in network.in_keys if key not in normalized]
-        self.observation_keys = tuple(dict.fromkeys([*normalizer.in_keys, *readers]))
+        self.observation_keys = raw_observation_keys(normalizer, actor, critic)
         keys = self.loss.tensor_keys
         # (dict.fromkeys: an entry both observed and a distribution parameter, the action mask, once)
         self.batch_keys = tuple(dict.fromkeys((
