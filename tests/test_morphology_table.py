@@ -307,3 +307,30 @@ def test_the_windows_benchmark_groups_evaluations_by_steps_per_training_robot(tm
     assert [window[0] for window in in_total] == [2000.0, 6000.0]
     with pytest.raises(SystemExit, match="no evaluation/periodic_morphologies.csv"):
         benchmark.seed_folder(tmp_path / "missing", 0)
+
+
+def test_a_distilled_entry_counts_its_own_real_steps_and_its_teachers_beside_them(tmp_path):
+    """The issue's budget is the specialists' real steps together: a run taught by specialists
+    (algo=distill) spent theirs before its own, so the table shows both."""
+    from unipolicy_rl.checkpoint import save_checkpoint
+
+    teachers = []
+    for index, epochs in enumerate((300, 200)):
+        config = {"episodes_per_epoch": 10, "robot": {"episode_length": 100}}
+        state = {"format": 3, "epoch": epochs, "config": config, "policy": {}}
+        teachers.append(str(save_checkpoint(tmp_path / f"teacher{index}.pt", state)))
+    path = write_run(tmp_path, "distilled", "token_modular", {"a": 3.0, "b": 2.0, "x": 0.5}, training_morphologies=2)
+    config = OmegaConf.load(path / ".hydra" / "config.yaml")
+    config.algo = {"name": "distill", "teachers": teachers}
+    OmegaConf.save(config, path / ".hydra" / "config.yaml")
+    (path / "metrics.csv").write_text("epoch,real_env_steps\n1,1000\n2,2000\n")
+    (run,) = [load_run(path, path.name)]
+    assert table.teacher_real_steps(run) == 300 * 1000 + 200 * 1000
+    comparisons = table.compare([run], sides_of=lambda run: SIDES)
+    (summary,) = table.summarize(comparisons)
+    assert (summary.entry, summary.real_steps, summary.teacher_steps) == (
+        "token_modular with distill, 2 morphologies", 2000, 500_000)
+    assert "| 2,000 + 500,000 (teachers) |" in table.format_table(comparisons, [summary])
+    # a teacher that cannot be read leaves the teachers' steps unknown, not zero
+    Path(teachers[1]).unlink()
+    assert math.isnan(table.teacher_real_steps(run))

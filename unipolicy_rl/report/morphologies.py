@@ -13,8 +13,9 @@ policy are compared on the same robot whatever its index on either side.
 Per universal entry (its policy and how many morphologies it trained on) and morphology: the
 universal policy's grid mean displacement over the specialist's (the median over specialist
 seeds, when there are several). Then per entry: the median of that ratio over the morphologies
-it trained on and over the held-out ones (zero-shot), and how many of its training
-morphologies it walks (grid mean >= ``WALKS`` m).
+it trained on and over the held-out ones (zero-shot), how many of its training
+morphologies it walks (grid mean >= ``WALKS`` m), and the real env steps it took: its own, and a
+distilled run's teachers' beside them (the issue's budget is the specialists' steps together).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from unipolicy_rl.report.metrics import real_env_steps
 from unipolicy_rl.report.runs import Run
 
 MORPHOLOGIES_CSV = Path("evaluation") / "morphologies.csv"
@@ -57,6 +59,9 @@ class Comparison:
     links: int
     universal: float
     specialist: float | None  # the specialists' median grid mean; None when no specialist ran on it
+    real_steps: float = math.nan     # the run's own real env steps at its final evaluation
+    teacher_steps: float = math.nan  # a distilled run's teachers' real env steps together; NaN for others
+    run: str = ""                    # the run it comes from (its name under the report's roots)
 
     @property
     def ratio(self) -> float:
@@ -76,6 +81,8 @@ class EntrySummary:
     trained_walking: int      # trained morphologies with grid mean >= WALKS
     trained: int
     held_out_mean: float      # median grid mean over the held-out morphologies (with or without specialists)
+    real_steps: float = math.nan     # median over the entry's runs of their own real env steps
+    teacher_steps: float = math.nan  # ... and of their teachers' (distillation), NaN where it has none
 
 
 @dataclass(frozen=True)
@@ -169,6 +176,38 @@ def entry_name(run: Run) -> str:
     return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}"
 
 
+def final_real_steps(run: Run) -> float:
+    """The run's real env steps at its last logged epoch; NaN where its metrics do not say."""
+    try:
+        steps = real_env_steps(run)
+    except (KeyError, TypeError):  # no real_env_steps column and no epoch size in the config
+        return math.nan
+    return float(steps[-1]) if len(steps) else math.nan
+
+
+def teacher_real_steps(run: Run, root: Path = Path(".")) -> float:
+    """A distilled run's (``algo=distill``) teachers' real env steps together: what its teaching
+    cost before its own steps, which the issue's budget (the specialists' steps together) counts too.
+    Read from the teachers' checkpoints (``algo.teachers``, relative to where the run ran: a
+    worktree of the repository, whose paths ``root`` stands in for); NaN for another learner or
+    where a teacher cannot be read."""
+    if algo_name(run) != "distill":
+        return math.nan
+    # Imported here: reading checkpoints needs torch, which only this question needs.
+    from unipolicy_rl.checkpoint import load_checkpoint
+
+    total = 0.0
+    for teacher in run.config["algo"].get("teachers") or []:
+        path = Path(teacher) if Path(teacher).is_absolute() else root / teacher
+        try:
+            state = load_checkpoint(path)
+            config = state["config"]
+            total += state["epoch"] * config["episodes_per_epoch"] * config["robot"]["episode_length"]
+        except (OSError, ValueError, KeyError, RuntimeError):
+            return math.nan
+    return total
+
+
 def split_sides(run: Run) -> dict[str, str]:
     """Each derivation of the run's split -> trained / held_out / train side, not trained on."""
     # Imported here: drawing a split builds robots, which only this question needs.
@@ -198,11 +237,14 @@ def compare(runs: Iterable[Run], sides_of=split_sides) -> list[Comparison]:
         if is_specialist(run):
             continue
         sides = sides_of(run)
-        for score in final_scores(run):
+        scores = final_scores(run)
+        own = final_real_steps(run) if scores else math.nan
+        teachers = teacher_real_steps(run) if scores else math.nan
+        for score in scores:
             found = specialists.get(score.derivation)
             comparisons.append(Comparison(entry_name(run), score.derivation, sides.get(score.derivation, UNTRAINED),
                                           score.links, score.mean_displacement,
-                                          statistics.median(found) if found else None))
+                                          statistics.median(found) if found else None, own, teachers, run.name))
     return comparisons
 
 
@@ -310,19 +352,26 @@ def summarize(comparisons: Sequence[Comparison]) -> list[EntrySummary]:
             _median([row.ratio for row in trained]), _median([row.ratio for row in held_out]),
             sum(not math.isnan(row.ratio) for row in trained), sum(not math.isnan(row.ratio) for row in held_out),
             sum(row.universal >= WALKS for row in trained), len(trained),
-            _median([row.universal for row in held_out])))
+            _median([row.universal for row in held_out]),
+            _median(_per_run(rows, "real_steps")), _median(_per_run(rows, "teacher_steps"))))
     return summaries
+
+
+def _per_run(rows: Sequence[Comparison], field: str) -> list[float]:
+    """One value of ``field`` per run of an entry (its rows repeat it once per morphology)."""
+    return list({row.run: getattr(row, field) for row in rows}.values())
 
 
 def format_table(comparisons: Sequence[Comparison], summaries: Sequence[EntrySummary]) -> str:
     """The summary per entry, then one line per entry and morphology."""
     lines = ["| entry | trained: universal / specialist (median) | walks (>= 1 m) | held out, zero-shot: "
-             "universal / specialist (median) | held out: grid mean (median) |",
-             "|---|---|---|---|---|"]
+             "universal / specialist (median) | held out: grid mean (median) | real env steps |",
+             "|---|---|---|---|---|---|"]
     for summary in summaries:
         lines.append(f"| {summary.entry} | {_percent(summary.trained_ratio)} ({summary.trained_compared} compared) | "
                      f"{summary.trained_walking}/{summary.trained} | {_percent(summary.held_out_ratio)} "
-                     f"({summary.held_out_compared} compared) | {_metres(summary.held_out_mean)} |")
+                     f"({summary.held_out_compared} compared) | {_metres(summary.held_out_mean)} | "
+                     f"{_steps(summary.real_steps, summary.teacher_steps)} |")
     lines += ["", "| entry | side | links | universal grid mean | specialist grid mean | ratio | derivation |",
               "|---|---|---|---|---|---|---|"]
     for row in sorted(comparisons, key=lambda row: (row.entry, row.side, row.links, row.derivation)):
@@ -334,6 +383,12 @@ def format_table(comparisons: Sequence[Comparison], summaries: Sequence[EntrySum
 
 def _percent(value: float) -> str:
     return "-" if math.isnan(value) else f"{100 * value:.0f}%"
+
+
+def _steps(own: float, teachers: float) -> str:
+    """An entry's real env steps: its own, and its teachers' beside them where it was taught."""
+    text = "-" if math.isnan(own) else f"{own:,.0f}"
+    return text if math.isnan(teachers) else f"{text} + {teachers:,.0f} (teachers)"
 
 
 def _metres(value: float) -> str:
