@@ -5,6 +5,7 @@
     python train.py source=de epochs=100    # any override
     python train.py -m source=de,se seed=0,1,2
     python train.py resume=outputs/se-trpo/seed0/<run>/checkpoint.pt
+    python train.py robot=grammar policy=token_modular init_policy=<distilled run>/checkpoint.pt   # fine-tune
 
 One loop, one real epoch per pass, read top to bottom: real episodes -> a policy update on them
 (a real source; a model-based one where ``imagination.train_on_real``) -> the observation
@@ -37,6 +38,7 @@ from unipolicy_rl.checkpoint import (
 from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
+from unipolicy_rl.learners.initial_policy import policy_to_start_from
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
 from unipolicy_rl.training import metrics_file as columns
@@ -66,6 +68,9 @@ def main(cfg: DictConfig) -> dict:
 
     observation_dim, action_dim = probe_dimensions(cfg)
     learner = make_learner(cfg, observation_dim, action_dim)
+    if cfg.init_policy and state is None:  # a new run from another run's policy (before collectors copy it)
+        learner.start_from_policy(policy_to_start_from(cfg, cfg.init_policy, observation_dim, action_dim))
+        print(f"started from the policy in {cfg.init_policy}")
     model_based = cfg.source.kind == "model"
     real = make_real_collector(cfg, learner.policy, full_state=model_based)
     # From here on, a failure anywhere still shuts the collector's worker processes and the

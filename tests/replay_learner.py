@@ -51,6 +51,9 @@ class ReplayLearner:
         return {"actor": self.actor.state_dict(), "observation_loc": self.statistics.loc,
                 "observation_scale": self.statistics.scale}
 
+    def start_from_policy(self, policy: dict) -> None:
+        self.actor.load_state_dict(policy["actor"])
+
     def state_dict(self) -> dict:
         return {"actor": self.actor.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "statistics": self.statistics.state_dict(), "buffer": self.buffer.state_dict(),

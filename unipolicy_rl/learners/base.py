@@ -47,6 +47,11 @@ class Learner(Protocol):
         """What :func:`~unipolicy_rl.checkpoint.load_policy` needs to rebuild the policy alone."""
         ...
 
+    def start_from_policy(self, policy: dict) -> None:
+        """Loads another run's :meth:`policy_state` (``init_policy``) into this new run's policy:
+        the actor's weights and the normaliser; the rest of the learner stays as built."""
+        ...
+
     def state_dict(self) -> dict:
         """Everything the learner continues from (weights, optimisers, statistics, RNG)."""
         ...
@@ -64,6 +69,18 @@ class Learner(Protocol):
 def policy_state(actor: TensorDictModuleBase, statistics) -> dict:
     """A learner's :meth:`Learner.policy_state`: the actor's weights and the normaliser's statistics."""
     return {"actor": actor.state_dict(), "observation_loc": statistics.loc, "observation_scale": statistics.scale}
+
+
+def load_policy_state(actor: TensorDictModuleBase, normalizer: TensorDictModuleBase, policy: dict) -> None:
+    """A learner's :meth:`Learner.start_from_policy`: ``policy`` (:func:`policy_state`'s layout)
+    into ``actor`` and ``normalizer``. The learner's observation statistics stay empty: the first
+    refresh moves the normaliser to this run's observations, re-expressing the actor (``preserve``)."""
+    try:
+        actor.load_state_dict(policy["actor"])
+    except RuntimeError as error:  # another network: missing, unexpected or differently shaped weights
+        raise ValueError(f"init_policy: its actor's weights do not load into this run's actor ({error})") from None
+    normalizer.loc.copy_(policy["observation_loc"])
+    normalizer.scale.copy_(policy["observation_scale"])
 
 
 def raw_observation_keys(normalizer: TensorDictModuleBase, *networks: TensorDictModuleBase) -> tuple[NestedKey, ...]:

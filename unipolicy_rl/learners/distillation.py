@@ -33,7 +33,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKENS
-from unipolicy_rl.learners.base import policy_state, raw_observation_keys
+from unipolicy_rl.learners.base import load_policy_state, policy_state, raw_observation_keys
 from unipolicy_rl.observation_statistics import REFRESH_MODES, ObservationStatistics, refresh_normalizer
 
 TEACHER_ACTION = "teacher_action"
@@ -218,6 +218,9 @@ class DistillationLearner:
 
     def policy_state(self) -> dict:
         return policy_state(self.actor, self.statistics)
+
+    def start_from_policy(self, policy: dict) -> None:
+        load_policy_state(self.actor, self.normalizer, policy)
 
     def state_dict(self) -> dict:
         return {"actor": self.actor.state_dict(), "observation_statistics": self.statistics.state_dict(),

@@ -41,7 +41,7 @@ from torchrl.objectives import CrossQLoss, LossModule, REDQLoss, SACLoss, SoftUp
 
 from unipolicy_rl.collectors.buffer_state import compact_state, load_compact_state
 from unipolicy_rl.collectors.real import is_imagined
-from unipolicy_rl.learners.base import observation_probe, policy_state
+from unipolicy_rl.learners.base import load_policy_state, observation_probe, policy_state
 from unipolicy_rl.networks import WarmedUpBatchRenorm1d, make_q_network
 from unipolicy_rl.observation_statistics import (
     REFRESH_MODES,
@@ -324,6 +324,9 @@ class OffPolicyLearner:
 
     def policy_state(self) -> dict:
         return policy_state(self.actor, self.statistics)
+
+    def start_from_policy(self, policy: dict) -> None:
+        load_policy_state(self.actor, self.normalizer, policy)
 
     def state_dict(self) -> dict:
         return {

@@ -22,7 +22,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import ObservationNorm
 
-from unipolicy_rl.learners.base import StalledLearning, policy_state, raw_observation_keys
+from unipolicy_rl.learners.base import StalledLearning, load_policy_state, policy_state, raw_observation_keys
 from unipolicy_rl.objectives import TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics, refresh_normalizer
 
@@ -112,6 +112,9 @@ class TRPOLearner:
 
     def policy_state(self) -> dict:
         return policy_state(self.actor, self.statistics)
+
+    def start_from_policy(self, policy: dict) -> None:
+        load_policy_state(self.actor, self.normalizer, policy)
 
     def state_dict(self) -> dict:
         self.updater.finish_critic_fit()
