@@ -105,6 +105,20 @@ def test_a_run_with_another_learner_is_an_entry_not_a_specialist(tmp_path):
     assert (row.entry, row.specialist, row.ratio) == ("token_mlp with ppo, 1 morphologies", 4.0, 0.5)
 
 
+def test_a_run_started_from_another_run_s_policy_is_an_entry_not_a_specialist(tmp_path):
+    """A warm start (init_policy) on one robot, even the specialist's own network and learner, is
+    measured against the specialists that started from nothing, not counted among them."""
+    paths = [write_run(tmp_path, "spec_x", "token_mlp", {"x": 2.0}, specialist=0),
+             write_run(tmp_path, "warm_x", "token_mlp", {"x": 3.0}, specialist=0)]
+    config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
+    config.init_policy = "runs/distilled/checkpoint.pt"
+    OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
+    runs = [load_run(path, path.name) for path in paths]
+    assert [table.is_specialist(run) for run in runs] == [True, False]
+    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    assert (row.entry, row.specialist, row.ratio) == ("token_mlp, 1 morphologies, from another run's policy", 2.0, 1.5)
+
+
 def test_a_run_on_the_structural_layout_is_an_entry_of_its_own(runs, tmp_path):
     path = write_run(tmp_path, "mlp_structural", "token_mlp", {"a": 3.0, "x": 2.0}, training_morphologies=2)
     config = OmegaConf.load(path / ".hydra" / "config.yaml")

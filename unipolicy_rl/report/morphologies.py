@@ -159,21 +159,23 @@ def is_specialist(run: Run) -> bool:
     says what the architecture costs without the sharing.)"""
     return (is_grammar_run(run) and run.config["robot"].get("specialist") is not None
             and not is_model_based(run) and run.config["policy"]["name"] == SPECIALIST_POLICY
-            and algo_name(run) == SPECIALIST_ALGO)
+            and algo_name(run) == SPECIALIST_ALGO and not run.config.get("init_policy"))
 
 
 def entry_name(run: Run) -> str:
     """A run's entry: its policy, the world model it trained on (if any), its learner where it is
-    not TRPO, the number of morphologies it trained on (1 for a run cut to one robot), and its
+    not TRPO, the number of morphologies it trained on (1 for a run cut to one robot), its
     token layout where it is not the default packed one (a padded MLP on another layout is
-    another policy)."""
+    another policy), and whether it started from another run's policy (``init_policy``: a
+    warm start, measured against the specialists that started from nothing)."""
     robot = run.config["robot"]
     count = 1 if robot.get("specialist") is not None else robot.get("training_morphologies")
     source = f" on {run.config['source']['name']}" if is_model_based(run) else ""
     source += "" if algo_name(run) == SPECIALIST_ALGO else f" with {algo_name(run)}"
     layout = robot.get("token_layout") or "packed"
     layout = "" if layout == "packed" else f", {layout} layout"
-    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}"
+    start = ", from another run's policy" if run.config.get("init_policy") else ""
+    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}{start}"
 
 
 def final_real_steps(run: Run) -> float:
