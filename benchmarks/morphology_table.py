@@ -123,7 +123,9 @@ def figure_panels(specialists, comparisons) -> list[Panel]:
         lines = []
         for entry, values in entries.items():
             runs = "" if len(values) == 1 else f" ({len(values)} runs)"
-            lines.append(f"{entry.split(',')[0]} x{entry.split(',')[1].split()[0]}: {np.median(values):.2f} m{runs}")
+            warm = " warm" if entry.endswith("from another run's policy") else ""  # started from init_policy
+            name = f"{entry.split(',')[0]} x{entry.split(',')[1].split()[0]}{warm}"
+            lines.append(f"{name}: {np.median(values):.2f} m{runs}")
         panels[derivation] = panels[derivation]._replace(lines=(*panels[derivation].lines, *lines))
     return list(panels.values())
 
@@ -138,7 +140,9 @@ def draw(panels: list[Panel], path: Path) -> None:
     order = sorted(panels, key=lambda panel: (panel.side == "held_out", panel.side, panel.links, panel.derivation))
     columns = min(6, len(order))
     rows = math.ceil(len(order) / columns)
-    figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.0 * rows), squeeze=False)
+    title_lines = max(len(panel.lines) for panel in order)  # room above each render for its title
+    figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, (2.4 + 0.12 * title_lines) * rows),
+                                squeeze=False)
     for axis in axes.flat:
         axis.axis("off")
     for axis, panel in zip(axes.flat, order, strict=False):
