@@ -44,6 +44,12 @@ SHARED_ENV_SETTINGS = ("max_links", "design", "physics", "reward_weights", "driv
                        "token_layout", "clock_frequency")
 
 
+def differing_env_settings(ours: dict, theirs: dict) -> list[str]:
+    """The :data:`SHARED_ENV_SETTINGS` in which two ``MorphologyWalkerEnv`` argument sets differ:
+    a policy's tokens mean the same on both only where there are none."""
+    return [key for key in SHARED_ENV_SETTINGS if ours.get(key) != theirs.get(key)]
+
+
 @dataclass(frozen=True)
 class DistillationSettings:
     """``conf/algo/distill.yaml``.
@@ -118,10 +124,11 @@ class SpecialistTeachers:
                                  f"student trains on ({robots[0]})")
             if index in self.paths:
                 raise ValueError(f"algo.teachers: {path} and {self.paths[index]} both teach morphology {index}")
-            for key in SHARED_ENV_SETTINGS:
-                if loaded.env_kwargs.get(key) != student_env_kwargs.get(key):
-                    raise ValueError(f"algo.teachers: {path} ran with another {key} ({loaded.env_kwargs.get(key)!r}) "
-                                     f"than the student's env ({student_env_kwargs.get(key)!r})")
+            differing = differing_env_settings(loaded.env_kwargs, student_env_kwargs)
+            if differing:
+                key = differing[0]
+                raise ValueError(f"algo.teachers: {path} ran with another {key} ({loaded.env_kwargs.get(key)!r}) "
+                                 f"than the student's env ({student_env_kwargs.get(key)!r})")
             self.policies[index], self.paths[index] = loaded.policy, path
         missing = [index for index in range(len(morphologies)) if index not in self.policies]
         if missing:

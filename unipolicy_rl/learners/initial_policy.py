@@ -30,7 +30,7 @@ def policy_to_start_from(cfg: DictConfig, path: str | Path, observation_dim: int
     """
     from unipolicy_rl.checkpoint import load_checkpoint  # (checkpoint imports the policy stack)
     from unipolicy_rl.envs.config import env_builder
-    from unipolicy_rl.learners.distillation import SHARED_ENV_SETTINGS
+    from unipolicy_rl.learners.distillation import differing_env_settings
 
     try:
         state = load_checkpoint(path)
@@ -48,7 +48,7 @@ def policy_to_start_from(cfg: DictConfig, path: str | Path, observation_dim: int
     if not differences and OmegaConf.select(cfg, "robot.kind") == "grammar":
         ours_env, theirs_env = env_builder(cfg)[1], env_builder(saved)[1]
         differences += [f"robot's {key}: {ours_env.get(key)!r} here, {theirs_env.get(key)!r} there"
-                        for key in SHARED_ENV_SETTINGS if ours_env.get(key) != theirs_env.get(key)]
+                        for key in differing_env_settings(ours_env, theirs_env)]
     if differences:
         raise ValueError(f"init_policy: the policy in {str(path)!r} does not fit this run (" + "; ".join(differences)
                          + "): start from a policy trained with this run's policy and robot settings")

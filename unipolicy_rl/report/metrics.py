@@ -81,8 +81,12 @@ def real_env_steps(run: Run) -> np.ndarray:
     the column, a real source's epoch trains on ``episodes_per_epoch * episode_length`` steps."""
     if REAL_STEPS in run.columns:
         return _carry_forward(column(run, REAL_STEPS))
-    per_epoch = run.config["episodes_per_epoch"] * run.config["robot"]["episode_length"]
-    return column(run, EPOCH) * per_epoch
+    return column(run, EPOCH) * real_steps_per_epoch(run.config)
+
+
+def real_steps_per_epoch(config: dict) -> int:
+    """The real env steps one epoch of a real source trains on, from a run's (resolved) config."""
+    return config["episodes_per_epoch"] * config["robot"]["episode_length"]
 
 
 def elapsed_seconds(run: Run) -> np.ndarray:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from unipolicy_rl.report.metrics import real_env_steps
+from unipolicy_rl.report.metrics import real_env_steps, real_steps_per_epoch
 from unipolicy_rl.report.runs import Run
 
 MORPHOLOGIES_CSV = Path("evaluation") / "morphologies.csv"
@@ -203,8 +203,7 @@ def teacher_real_steps(run: Run, root: Path = Path(".")) -> float:
         path = Path(teacher) if Path(teacher).is_absolute() else root / teacher
         try:
             state = load_checkpoint(path)
-            config = state["config"]
-            total += state["epoch"] * config["episodes_per_epoch"] * config["robot"]["episode_length"]
+            total += state["epoch"] * real_steps_per_epoch(state["config"])
         except (OSError, ValueError, KeyError, RuntimeError):
             return math.nan
     return total
