@@ -550,22 +550,3 @@ def test_checkpoints_of_the_earlier_layouts_load_in_the_current_one(tmp_path):
     assert torch.equal(state["policy"]["actor"]["w"], state["learner"]["actor"]["w"])
     torch.save({"epoch": 2, "config": config, **weights}, tmp_path / "format1.pt")
     assert load_checkpoint(tmp_path / "format1.pt")["collector"] == {"epoch": 2, "real_env_steps": 2000}
-
-
-def test_the_trpo_step_settings_benchmark_steps_a_run_s_own_batch_under_each_setting(tmp_path, capsys):
-    """benchmarks/trpo_step_settings.py: from a checkpoint, one step per CG setting from the same
-    weights; the first setting is the reference of the ratios."""
-    import importlib.util
-
-    run = run_train(*TINY, "epochs=1", f"hydra.run.dir={tmp_path}")
-    assert run.returncode == 0, run.stderr
-    spec = importlib.util.spec_from_file_location("trpo_step_settings", ROOT / "benchmarks" / "trpo_step_settings.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
-    assert benchmark.main([str(tmp_path / "checkpoint.pt"), "--settings", "10:0.1", "2:0.1", "--batches", "1"]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if "cg_iters" in line]
-    assert len(lines) == 2 and "(1.00x)" in lines[0] and "cg_iters   2 damping 0.1" in lines[1]
-    with pytest.raises(SystemExit):
-        benchmark.main([str(tmp_path / "checkpoint.pt"), "--settings", "ten:0.1"])
-    with pytest.raises(SystemExit):
-        benchmark.main([str(tmp_path / "checkpoint.pt"), "--batches", "0"])

@@ -52,7 +52,7 @@ def grammar_morphologies(cfg: DictConfig, side: str | None = None) -> tuple[Morp
     evaluation of the morphologies trained on). ``robot.specialist: i`` cuts the side the
     training env draws from to its morphology ``i`` alone, there and in an evaluation of that
     side: a specialist run, trained and evaluated on one robot of the split (the baseline a
-    policy of many robots is measured against; ``benchmarks/morphology_table.py``)."""
+    policy of many robots is measured against; ``study/morphology/report.py``)."""
     side = cfg.robot.morphologies if side is None else side
     if side not in GRAMMAR_SIDES:
         raise ValueError(f"robot.morphologies must be one of {GRAMMAR_SIDES}, got {side!r}")

@@ -40,7 +40,7 @@ DESIGNS = Path("evaluation") / "designs.csv"
 SWEEP_FILE = "multirun.yaml"  # Hydra writes it at the root of every multirun
 RUN_MARKERS = (CONFIG, Path(METRICS), Path(CHECKPOINT))
 # A run's record: the small files the reports read (not its checkpoint or buffer), what an archive keeps.
-COMMANDS = "commands.txt"  # benchmarks/league_queue.py's log of every command a run was given
+COMMANDS = "commands.txt"  # study/queue.py's log of every command a run was given
 RECORD = (CONFIG, HYDRA_CONFIG, OVERRIDES, Path(METRICS), Path(COMMANDS))
 EVALUATION_TABLES = "evaluation/*.csv"
 # A run whose metrics.csv changed this recently may still be training.

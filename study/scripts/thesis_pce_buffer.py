@@ -1,7 +1,7 @@
 """The thesis' ME-PCE (``world_model=pce_thesis``) fitted on a run's own real data: held-out error
 against the samples required per term and the number of elements.
 
-    python benchmarks/thesis_pce_buffer.py <run dir or checkpoint.pt of a pce_thesis run>
+    python study/scripts/thesis_pce_buffer.py <run dir or checkpoint.pt of a pce_thesis run>
         [--divisions 1 7] [--oversampling 2 5 10 20] [--order 3]
 
 Takes the replay buffer a model-based run's checkpoint carries (the policy's episodes, with the
@@ -15,11 +15,15 @@ mean over the data), which for this model is its open-loop error.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import torch
-import world_model_setup as setup
-from branch_accuracy import buffer_of
+
+# The benchmarks' world-model setup and buffer reader, which this study script builds on.
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import world_model_setup as setup  # noqa: E402
+from branch_accuracy import buffer_of  # noqa: E402
 
 
 def main() -> None:

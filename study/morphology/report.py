@@ -6,9 +6,11 @@
         evaluation.morphologies=held_out epochs=300 seed=0 hydra.run.dir=runs/specialists/held_out0
     python train.py robot=grammar policy=token_transformer robot.training_morphologies=8 \\
         evaluation.morphologies=all epochs=2400 seed=0 hydra.run.dir=runs/universal/transformer8
-    python benchmarks/morphology_table.py runs/specialists runs/universal [--out outputs/morphology_table]
+    python study/morphology/report.py runs/specialists runs/universal [--out outputs/morphology_table]
+    python study/morphology/report.py                  # the study's records (study/morphology/records)
 
-Reads every grammar run under the roots (``unipolicy_rl.report.morphologies``): specialists are
+Reads every grammar run's record (:mod:`study.records`; run folders are read into records on the
+fly) under the roots (:mod:`study.morphology.table`): specialists are
 the runs with ``robot.specialist`` set, the others universal entries (policy x number of
 training morphologies). Prints, per entry, the median of the universal policy's grid mean
 displacement over the specialist's on the morphologies it trained on and on the held-out ones
@@ -37,7 +39,13 @@ from typing import NamedTuple
 import numpy as np
 import pybullet
 
-from unipolicy_rl.report.morphologies import (
+# Run as a file, the script's folder leads sys.path (where ``queue.py`` would shadow the standard
+# library's): the repository root takes its place, for ``import study``.
+if __package__ in (None, ""):
+    sys.path[0] = str(Path(__file__).resolve().parents[2])
+
+from study import records as run_records  # noqa: E402
+from study.morphology.table import (  # noqa: E402
     compare,
     compare_at_matched_steps,
     format_matched_steps,
@@ -47,12 +55,13 @@ from unipolicy_rl.report.morphologies import (
     specialist_scores,
     summarize,
 )
-from unipolicy_rl.report.runs import ReportError, load_runs
-from unipolicy_rl.robots import load_robot
-from unipolicy_rl.robots.grammar import describe
-from unipolicy_rl.robots.kinematics import rest_height
+from unipolicy_rl.report.runs import ReportError  # noqa: E402
+from unipolicy_rl.robots import load_robot  # noqa: E402
+from unipolicy_rl.robots.grammar import describe  # noqa: E402
+from unipolicy_rl.robots.kinematics import rest_height  # noqa: E402
 
 DEFAULT_OUT = Path("outputs") / "morphology_table"
+RECORDS = Path(__file__).resolve().parent / "records"  # the study's grammar records
 
 
 def render(derivation: str, width: int = 240, height: int = 180) -> np.ndarray:
@@ -164,7 +173,9 @@ def _step_list(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("roots", nargs="+", type=Path, help="folders holding specialist and universal grammar runs")
+    parser.add_argument("roots", nargs="*", type=Path, default=[RECORDS],
+                        help="folders of specialist and universal grammar runs' records or run folders "
+                             "(the study's records)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"where the CSV and figure go ({DEFAULT_OUT})")
     parser.add_argument("--no-pictures", action="store_true", help="skip the PyBullet renders")
     parser.add_argument("--matched-steps", type=_step_list, metavar="N,N,...",
@@ -172,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
                              "robot, from their periodic evaluations (unfinished runs too), e.g. 40000,80000,140000")
     args = parser.parse_args(argv)
     try:
-        runs = [run for run in load_runs(args.roots, exclude=[args.out]) if is_grammar_run(run)]
+        runs = [record for record in run_records.load(args.roots)[0] if is_grammar_run(record)]
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1

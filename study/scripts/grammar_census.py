@@ -1,6 +1,6 @@
 """How many robots the grammar derives up to each size, how many stand, and whether standing holds in PyBullet.
 
-    python benchmarks/grammar_census.py [--samples 200] [--seed 0] [--physics 60] [--split-seed 0]
+    python study/scripts/grammar_census.py [--samples 200] [--seed 0] [--physics 60] [--split-seed 0]
 
 Counts are exact (``count_morphologies``: every robot has one derivation). The share that
 stands is exact over every robot of the smallest sizes (two segments, one or two leg pairs

@@ -1,4 +1,4 @@
-"""The sample-efficiency league: one protocol for every entry, read from the runs' metrics.csv.
+"""The sample-efficiency league: one protocol for every entry, read from the runs' records.
 
 Every run evaluates on one schedule in real env steps (``evaluation.every_steps``,
 ``evaluation.dense_until``, ``evaluation.then_every_steps``: every 2,000 up to 100,000, every
@@ -39,10 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from study.records import Evaluation, Record
 from unipolicy_rl.evaluation import GRID_WALKING_MEAN, WALKING_DISPLACEMENT, walks_the_grid
-from unipolicy_rl.report.metrics import column, real_env_steps, training_cpu_seconds, training_seconds
-from unipolicy_rl.report.runs import Run
-from unipolicy_rl.training.metrics_file import GRID_MEAN, GRID_MIN
 
 # SE-TRPO's final level (c): the grid mean and the worst design its final policies reach (m).
 SE_TRPO_FINAL_MEAN = 5.0
@@ -57,19 +55,6 @@ BASELINE = "se-trpo"
 RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
 CONFIDENCE = 0.95
-
-
-@dataclass(frozen=True)
-class Evaluation:
-    """One periodic grid evaluation of a run."""
-
-    steps: float  # the run's real env steps when it evaluated
-    seconds: float  # wall seconds spent training up to it (evaluations and checkpoints left out)
-    grid_mean: float  # m
-    grid_min: float  # m, the worst design
-    # CPU seconds over the same spans, every core and the worker processes counted: a cost that
-    # load on the machine inflates far less than wall time (NaN where the run did not log it)
-    cpu_seconds: float = math.nan
 
 
 def reaches_se_trpo_final(grid_mean: float, grid_min: float) -> bool:
@@ -141,31 +126,6 @@ LEVELS = (
 
 
 # -- one run ---------------------------------------------------------------------------
-def evaluations(run: Run) -> list[Evaluation]:
-    """The run's periodic grid evaluations (rows with a grid mean and worst design), in order."""
-    if not run.rows:
-        return []
-    means, mins = column(run, GRID_MEAN), column(run, GRID_MIN)
-    steps, seconds, cpu = real_env_steps(run), training_seconds(run), training_cpu_seconds(run)
-    return [Evaluation(float(steps[i]), float(seconds[i]), float(means[i]), float(mins[i]), float(cpu[i]))
-            for i in range(len(run.rows)) if math.isfinite(means[i]) and math.isfinite(mins[i])]
-
-
-def is_model_free(run: Run) -> bool:
-    """Trained on real data only (``source.kind: real``; a run from before ``source.kind`` existed:
-    one without a world model)."""
-    source = (run.config or {}).get("source") or {}
-    if "kind" in source:
-        return source["kind"] == "real"
-    return not (run.config or {}).get("world_model")
-
-
-def on_step_schedule(run: Run) -> bool:
-    """Whether the run evaluated on the schedule in real env steps (runs before it evaluated every
-    ``evaluation.every`` epochs: its levels are read at that coarser spacing)."""
-    return "every_steps" in ((run.config or {}).get("evaluation") or {})
-
-
 @dataclass(frozen=True)
 class RunResult:
     """One run's evaluations, the evaluation at which it reached each level, and the (d) figures."""
@@ -183,12 +143,12 @@ class RunResult:
     finished: bool = True
 
 
-def run_result(run: Run) -> RunResult:
-    found = evaluations(run)
-    return RunResult(name=run.name, entry=run.source, seed=(run.config or {}).get("seed"),
-                     model_free=is_model_free(run), step_schedule=on_step_schedule(run), evaluations=tuple(found),
+def run_result(record: Record) -> RunResult:
+    found = record.evaluations
+    return RunResult(name=record.name, entry=record.entry, seed=record.seed, model_free=record.model_free,
+                     step_schedule=record.step_schedule, evaluations=tuple(found),
                      levels={level.key: level.find(found) for level in LEVELS},
-                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=run.finished)
+                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=record.finished)
 
 
 # -- statistics ------------------------------------------------------------------------

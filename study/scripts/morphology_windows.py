@@ -1,9 +1,10 @@
 """A universal run's periodic evaluations in windows of real env steps per training robot.
 
-    python benchmarks/morphology_windows.py RUN [RUN ...] [--window 30000] [--seed 0]
-    python benchmarks/morphology_windows.py RUN [RUN ...] --in-total --window 240000
+    python study/scripts/morphology_windows.py RUN [RUN ...] [--window 30000] [--seed 0]
+    python study/scripts/morphology_windows.py RUN [RUN ...] --in-total --window 240000
 
-Each RUN is an entry's folder (``docs/morphology/runs/<entry>``, its ``seed<k>`` inside) or a seed's
+Each RUN is an entry's run folder (``<runs>/<entry>``, its ``seed<k>`` inside: the run folders, not
+their compact records) or a seed's
 folder itself. A universal run (``robot=grammar evaluation.morphologies=all``) evaluates every
 robot it trained on and every held-out robot on the corner designs every few epochs
 (``evaluation/periodic_morphologies.csv``); this groups those evaluations by the real env steps each

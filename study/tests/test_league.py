@@ -1,121 +1,36 @@
-"""The sample-efficiency league: the periodic evaluation's schedule in real env steps (and over a
-resume), and the protocol's levels, medians, intervals and ratios on hand-made metrics files."""
+"""The sample-efficiency league: the protocol's levels, medians, intervals and ratios on hand-made
+runs, their compact records, and the queue that runs a study."""
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import importlib.util
-import itertools
 import math
 import re
 import shutil
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from unipolicy_rl.evaluation import DesignResult
-from unipolicy_rl.report import league
+from study import queue as study_queue
+from study import records
+from study.league import levels as league
+from study.league import report
+from study.scripts import league_archive
 from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run
 from unipolicy_rl.training import metrics_file as columns
-from unipolicy_rl.training import progress
-from unipolicy_rl.training.progress import PeriodicEvaluation, evaluation_points, evaluations_done
+from unipolicy_rl.training.progress import evaluation_points
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-# -- the schedule ------------------------------------------------------------------------
-def schedule_config(episodes_per_epoch: int = 10, **evaluation):
-    """The composed config, epochs of ``episodes_per_epoch`` x 100 steps (1,000 by default), a 2 x 2
-    grid, and ``evaluation`` overrides."""
-    overrides = [f"episodes_per_epoch={episodes_per_epoch}", "robot.episode_length=100", "evaluation.grid=2",
-                 *(f"evaluation.{key}={value}" for key, value in evaluation.items())]
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=overrides)
+ROOT = Path(__file__).resolve().parents[2]
 
 
-EVALUATION_SECONDS = 0.01  # how long the stubbed grid evaluation takes
-
-
-@pytest.fixture
-def grid_stub(monkeypatch):
-    """The grid evaluation replaced by fixed figures (the n-th call walks n / 2 m on every design)."""
-    calls = []
-
-    def evaluate(policy, env_kwargs, designs, episodes_per_design, seed):
-        time.sleep(EVALUATION_SECONDS)
-        calls.append(len(designs))
-        metres = len(calls) / 2
-        return [DesignResult(d.length, d.density, 1, 10 * metres, 0.0, metres, 0.0, metres / 10, 0) for d in designs]
-
-    monkeypatch.setattr(progress, "evaluate_on_designs", evaluate)
-    return calls
-
-
-def evaluated_epochs(evaluation: PeriodicEvaluation, epochs) -> dict[int, dict]:
-    """Epoch -> the evaluation's metrics, for the epochs it evaluated after (as train.py calls it)."""
-    epoch_steps = evaluation.cfg.episodes_per_epoch * evaluation.cfg.robot.episode_length
-    return {epoch: metrics for epoch in epochs if (metrics := evaluation(epoch, epoch * epoch_steps, policy=None))}
-
-
-SCHEDULE = {"every_steps": 2000, "dense_until": 10000, "then_every_steps": 5000}
-
-
-def test_the_evaluation_runs_at_the_schedule_points_in_real_steps(grid_stub):
-    cfg = schedule_config(**SCHEDULE)
-    evaluation = PeriodicEvaluation(cfg)
-    done = evaluated_epochs(evaluation, range(1, 21))
-    assert list(done) == [2, 4, 6, 8, 10, 15, 20]
-    assert len(grid_stub) == 7 and grid_stub[0] == 4  # one episode per design of the 2 x 2 grid
-    # The evaluations' own episodes and steps, cumulative, apart from the training steps.
-    assert [m[columns.EVAL_EPISODES] for m in done.values()] == [4.0, 8.0, 12.0, 16.0, 20.0, 24.0, 28.0]
-    assert done[20][columns.EVAL_ENV_STEPS] == 28 * 100
-    # and each evaluation's own wall time (not cumulative: the league sums it)
-    assert all(EVALUATION_SECONDS <= m[columns.EVAL_SECONDS] < 1.0 for m in done.values())
-    assert done[4][columns.GRID_MEAN] == 1.0 and evaluation.best["epoch"] == 20  # each walks further: the last
-
-
-def test_a_resumed_evaluation_continues_at_the_same_points(grid_stub):
-    cfg = schedule_config(**SCHEDULE)
-    straight = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 21))
-    first = PeriodicEvaluation(cfg)
-    evaluated_epochs(first, range(1, 8))
-    resumed = evaluated_epochs(PeriodicEvaluation(cfg, best=first.best), range(8, 21))  # a fresh process
-    assert list(resumed) == [8, 10, 15, 20]
-    assert [m[columns.EVAL_EPISODES] for m in resumed.values()] == \
-        [straight[epoch][columns.EVAL_EPISODES] for epoch in resumed]
-
-
-def test_an_epoch_crossing_several_points_evaluates_once_and_zero_turns_it_off(grid_stub):
-    cfg = schedule_config(episodes_per_epoch=35, **SCHEDULE)
-    # 3,500-step epochs: the first crosses 2,000, the second 4,000 and 6,000 (one evaluation), the
-    # third 8,000 and 10,000, the fourth (to 14,000) none, then 15,000 and 20,000.
-    done = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 7))
-    assert list(done) == [1, 2, 3, 5, 6] and done[6][columns.EVAL_EPISODES] == 5 * 4
-    off = schedule_config(every_steps=0)
-    assert not evaluated_epochs(PeriodicEvaluation(off), range(1, 30))
-
-
-@pytest.mark.parametrize(("every", "until", "then", "epoch"),
-                         list(itertools.product((1, 3, 7), (0, 10, 21), (1, 4, 9), (1, 2, 5, 8))))
-def test_the_evaluation_count_is_the_number_of_epochs_that_crossed_a_point(every, until, then, epoch):
-    crossed = 0
-    for steps in range(epoch, 200, epoch):
-        crossed += evaluation_points(steps, every, until, then) > evaluation_points(steps - epoch, every, until, then)
-        assert evaluations_done(steps, epoch, every, until, then) == crossed
-
-
-def test_the_schedule_is_every_step_setting_up_to_the_dense_part_then_the_sparse_one():
-    points = [s for s in range(1, 130_001) if evaluation_points(s, 2000, 100_000, 10_000)
-              > evaluation_points(s - 1, 2000, 100_000, 10_000)]
-    assert points[:3] == [2000, 4000, 6000] and points[49:] == [100_000, 110_000, 120_000, 130_000]
+def result_of(path: Path) -> league.RunResult:
+    """A run folder's league result, through its record as the report reads it."""
+    return league.run_result(records.from_run(load_run(path, path.name)))
 
 
 # -- hand-made runs ----------------------------------------------------------------------
@@ -198,7 +113,7 @@ def runs(sweep) -> dict[tuple[str, int], league.RunResult]:
     results = {}
     for entry, _, seed in RUNS:
         path = sweep / f"{entry}_seed{seed}"
-        results[entry, seed] = league.run_result(load_run(path, path.name))
+        results[entry, seed] = result_of(path)
     return results
 
 
@@ -224,7 +139,7 @@ def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs
 def test_wall_times_are_the_seconds_spent_training_without_the_evaluations(tmp_path, kind):
     segments, last = RUNS["se-trpo", "real", 0]
     path = write_run(tmp_path, f"se-{kind}", kind, 0, segments, last, epoch_times=(0.5, 0.25))
-    timed = league.run_result(load_run(path, path.name))
+    timed = result_of(path)
     # first walk at 4,000 steps: 4 epochs of 0.75 s training each (the imagined rows' times are
     # parts of their epoch's update, not added again), not the 4 s since the start
     assert timed.levels["first_walk"].seconds == 3.0
@@ -235,7 +150,7 @@ def test_wall_times_are_the_seconds_spent_training_without_the_evaluations(tmp_p
 def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tmp_path, kind):
     segments, last = RUNS["se-trpo", "real", 0]
     path = write_run(tmp_path, f"se-{kind}", kind, 0, segments, last, epoch_times=(0.5, 0.25), cpu=1.5)
-    timed = league.run_result(load_run(path, path.name))
+    timed = result_of(path)
     assert timed.levels["first_walk"].cpu_seconds == 4 * 1.5  # the imagined rows' 1,000 s are not added
     assert timed.levels["se_trpo_final"].cpu_seconds == 30 * 1.5
     row = next(line for line in league.format_runs([timed]).splitlines() if line.startswith("se-"))
@@ -244,7 +159,7 @@ def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tm
     # Resumed from a commit before the column: no sum with its first part missing.
     partial = write_run(tmp_path / "partial", f"se-{kind}", kind, 1, segments, last, epoch_times=(0.5, 0.25),
                         cpu=1.5, cpu_from=3)
-    resumed = league.run_result(load_run(partial, partial.name))
+    resumed = result_of(partial)
     assert math.isnan(resumed.levels["first_walk"].cpu_seconds)
     both = league.make_entries([timed, resumed], resamples=200)[0].levels["first_walk"]
     alone = league.make_entries([timed], resamples=200)[0].levels["first_walk"]
@@ -279,7 +194,7 @@ def test_a_run_resumed_with_a_larger_budget_is_unfinished_until_it_gets_there(tm
     config.epochs = 30  # resume=... epochs=30: trained to 20 so far
     OmegaConf.save(config, path / ".hydra" / "config.yaml")
     assert not load_run(path, path.name).finished
-    assert not league.run_result(load_run(path, path.name)).finished
+    assert not result_of(path).finished
 
 
 def test_the_grid_is_read_at_the_first_evaluation_at_or_after_each_milestone(runs, entries):
@@ -332,10 +247,7 @@ def test_ratios_against_se_trpo_and_the_best_model_free_entry(entries):
 
 
 def test_the_benchmark_prints_the_table_and_draws_the_figure(sweep, tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("league_benchmark", ROOT / "benchmarks" / "league.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
-    assert benchmark.main([str(sweep), "--out", str(tmp_path / "out"), "--resamples", "500"]) == 0
+    assert report.main([str(sweep), "--out", str(tmp_path / "out"), "--resamples", "500"]) == 0
     printed = capsys.readouterr().out
     assert "(a) first_walk" in printed and "(c) se_trpo_final" in printed
     assert "6,000 [4,000, not reached]" in printed
@@ -346,12 +258,28 @@ def test_the_benchmark_prints_the_table_and_draws_the_figure(sweep, tmp_path, ca
     assert len(rows) == 3 * 3 and {row["entry"] for row in rows} == {"se-trpo", "de-trpo", "se-moe-trpo"}
 
 
+def test_compact_records_rebuild_the_same_league_as_the_run_folders(sweep, tmp_path, capsys):
+    assert records.main([str(sweep), str(tmp_path / "records"), "--machine", "here"]) == 0
+    assert f"wrote {len(RUNS)} records" in capsys.readouterr().out
+
+    def printed(root: Path) -> list[str]:
+        assert report.main([str(root), "--out", str(tmp_path / "out"), "--resamples", "500"]) == 0
+        return [line for line in capsys.readouterr().out.splitlines() if not line.startswith("wrote")]
+
+    assert printed(tmp_path / "records") == printed(sweep)
+    name = "se-trpo_seed0"
+    kept = records.read(tmp_path / "records" / name, name)
+    original = records.from_run(load_run(sweep / name, name))
+    assert repr(kept.evaluations) == repr(original.evaluations)  # NaN where neither logged CPU seconds
+    assert len(kept.evaluations) == 52  # every 2,000 to 100,000, then 110,000 and 120,000
+    assert (kept.entry, kept.seed, kept.model_free, kept.finished, kept.budget, kept.machine) == (
+        "se-trpo", 0, True, False, 120, "here")
+    assert sorted(path.name for path in (tmp_path / "records" / name).iterdir()) == [
+        "commands.txt", "evaluations.csv", "record.yaml"]
+
+
 def load_queue():
-    spec = importlib.util.spec_from_file_location("league_queue", ROOT / "benchmarks" / "league_queue.py")
-    queue = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = queue  # its dataclasses look their module up there
-    spec.loader.exec_module(queue)
-    return queue
+    return study_queue
 
 
 def test_the_queue_plans_every_entrys_seed_in_turn_and_resumes_a_started_run(tmp_path):
@@ -431,7 +359,7 @@ def test_the_median_is_bounded_below_by_what_the_unfinished_runs_can_still_reach
     runs = []
     for seed, walks in segments.items():
         path = write_run(tmp_path, "se-sac", "real", seed, walks, 20_000)
-        runs.append(league.run_result(load_run(path, path.name)))
+        runs.append(result_of(path))
     assert [league.earliest_still_possible(run.evaluations, "stays_walking") for run in runs[1:]] == [20_000, 18_000]
     stays = league.level_stats(runs, "stays_walking", resamples=100)
     assert (stays.reached, stays.unfinished, stays.steps, stays.steps_at_least) == (1, 2, math.inf, 18_000)
@@ -445,9 +373,7 @@ def test_the_median_is_bounded_below_by_what_the_unfinished_runs_can_still_reach
 
 
 def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep, tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("league_archive", ROOT / "benchmarks" / "league_archive.py")
-    archive = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(archive)
+    archive = league_archive
     runs = tmp_path / "runs"
     for (entry, kind, seed), (segments, last) in RUNS.items():
         path = write_run(runs, entry, kind, seed, segments, last)
@@ -463,8 +389,8 @@ def test_the_archived_records_give_the_same_league_without_the_checkpoints(sweep
         ".hydra/config.yaml", ".hydra/hydra.yaml", "evaluation/designs.csv", "metrics.csv"]
     for entry, _, seed in RUNS:
         name = f"{entry}_seed{seed}"
-        original = league.run_result(load_run(runs / name, name))
-        copy = league.run_result(load_run(tmp_path / "kept" / name, name))
+        original = result_of(runs / name)
+        copy = result_of(tmp_path / "kept" / name)
         assert steps_at(copy) == steps_at(original) and copy.finished == original.finished
 
 
@@ -564,7 +490,7 @@ with open(folder / "metrics.csv", "w") as metrics:
 
 
 def test_no_two_of_many_entries_are_drawn_alike():
-    from unipolicy_rl.report.league import line_style
+    from study.league.levels import line_style
 
     looks = [line_style(i) for i in range(40)]
     assert len({(tuple(colour), style) for colour, style in looks}) == 40
@@ -580,7 +506,7 @@ def test_every_league_plan_entry_runs_under_its_own_name():
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf
 
-    entries = yaml.safe_load((ROOT / "benchmarks" / "league_plan.yaml").read_text())
+    entries = yaml.safe_load((ROOT / "study" / "league_plan.yaml").read_text())
     try:
         with initialize_config_dir(str(ROOT / "conf"), version_base=None):
             for name, entry in entries.items():
@@ -599,7 +525,7 @@ def test_every_entry_of_the_queue_plans_composes_and_passes_validation(plan):
 
     from unipolicy_rl.validation import validate_config
 
-    entries = yaml.safe_load((ROOT / "benchmarks" / plan).read_text())
+    entries = yaml.safe_load((ROOT / "study" / plan).read_text())
     assert entries
     with initialize_config_dir(str(ROOT / "conf"), version_base=None):
         for name, entry in entries.items():

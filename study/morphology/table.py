@@ -1,14 +1,15 @@
-"""One policy for many robots against a specialist per robot: the table of issue 23, from run folders.
+"""One policy for many robots against a specialist per robot: the table of issue 23, from run records.
 
 A *specialist* run trains on one morphology of the grammar's split (``robot.specialist``) on
 real data; a *universal* run on the first ``robot.training_morphologies`` of its training side
 (all of them when unset). A run on a world model's data (``source=moe``) is an entry of its own,
 cut to one robot or not, measured against the same specialists (what a world model is worth on
-the grammar's robots, beside what it costs in real env steps). Both write their final evaluation per morphology to
-``evaluation/morphologies.csv`` (the deterministic policy on the ``evaluation.grid`` design grid,
-one row per morphology, its derivation included), which is all this module reads, beside the
-run's config. Morphologies are matched by their derivation, so a specialist and a universal
-policy are compared on the same robot whatever its index on either side.
+the grammar's robots, beside what it costs in real env steps). A grammar run's record
+(:mod:`study.records`, written by :mod:`study.morphology.grammar_runs`) holds its final
+evaluation per morphology (the deterministic policy on the ``evaluation.grid`` design grid) and
+each robot's side of the split, which is all this module reads. Morphologies are matched by their
+derivation, so a specialist and a universal policy are compared on the same robot whatever its
+index on either side.
 
 Per universal entry (its policy and how many morphologies it trained on) and morphology: the
 universal policy's grid mean displacement over the specialist's (the median over specialist
@@ -20,23 +21,16 @@ distilled run's teachers' beside them (the issue's budget is the specialists' st
 
 from __future__ import annotations
 
-import csv
 import math
 import statistics
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
-from omegaconf import OmegaConf
+from study.morphology.grammar_runs import HELD_OUT, TRAINED, UNTRAINED
+from study.records import Record
 
-from unipolicy_rl.report.metrics import real_env_steps, real_steps_per_epoch
-from unipolicy_rl.report.runs import Run
-
-MORPHOLOGIES_CSV = Path("evaluation") / "morphologies.csv"
-PERIODIC_CSV = Path("evaluation") / "periodic_morphologies.csv"
 WALKS = 1.0  # m of grid mean displacement: a morphology the policy walks
-TRAINED, HELD_OUT, UNTRAINED = "trained", "held_out", "train side, not trained on"
 
 
 @dataclass(frozen=True)
@@ -98,15 +92,14 @@ class SpecialistScore:
     derivation: str
 
 
-def specialist_scores(runs: Iterable[Run]) -> list[SpecialistScore]:
+def specialist_scores(records: Iterable[Record]) -> list[SpecialistScore]:
     """Every specialist run's final evaluation (runs without one yet are left out), by side,
     index and seed: what a study has measured before any universal run has finished."""
     scores = []
-    for run in filter(is_specialist, runs):
-        robot = run.config["robot"]
-        for score in final_scores(run):
-            scores.append(SpecialistScore(str(robot.get("morphologies", "train")), int(robot["specialist"]),
-                                          int(run.config.get("seed", 0)), score.links, score.mean_displacement,
+    for record in filter(is_specialist, records):
+        for score in final_scores(record):
+            scores.append(SpecialistScore(record.grammar["side"], int(record.grammar["index"]),
+                                          int(record.seed or 0), score.links, score.mean_displacement,
                                           score.worst_displacement, score.derivation))
     return sorted(scores, key=lambda score: (score.side != "train", score.side, score.index, score.seed))
 
@@ -122,130 +115,47 @@ def format_specialists(scores: Sequence[SpecialistScore]) -> str:
     return "\n".join(lines)
 
 
-def final_scores(run: Run) -> list[MorphologyScore]:
-    """The run's final evaluation per morphology (the last row of each derivation: an evaluation
-    rerun appends); empty when the run has none."""
-    path = run.path / MORPHOLOGIES_CSV
-    if not path.is_file():
-        return []
-    with path.open(newline="") as file:
-        rows = {row["derivation"]: row for row in csv.DictReader(file)}
-    return [MorphologyScore(derivation, int(row["links"]), float(row["mean_forward_displacement"]),
-                            float(row["min_forward_displacement"])) for derivation, row in rows.items()]
+def final_scores(record: Record) -> list[MorphologyScore]:
+    """The run's final evaluation per morphology; empty when the run has none."""
+    return [MorphologyScore(robot.derivation, robot.links, robot.mean_displacement, robot.worst_displacement)
+            for robot in record.robots if robot.evaluated]
 
 
-def is_grammar_run(run: Run) -> bool:
-    return bool(run.config) and (run.config.get("robot") or {}).get("kind") == "grammar"
+def is_grammar_run(record: Record) -> bool:
+    return record.grammar is not None
 
 
-def is_model_based(run: Run) -> bool:
-    """Trained on a world model's data (``source.kind: model``)."""
-    return (run.config.get("source") or {}).get("kind") == "model"
+def is_specialist(record: Record) -> bool:
+    """The reference a morphology is measured against (:func:`study.morphology.grammar_runs.is_specialist`)."""
+    return is_grammar_run(record) and bool(record.grammar["specialist"])
 
 
-SPECIALIST_POLICY = "token_mlp"  # issue 23's specialist: an MLP policy on the robot's own observation
-SPECIALIST_ALGO = "trpo"  # ... trained by SE-TRPO
+def sides(record: Record) -> dict[str, str]:
+    """Each robot of the run's record -> trained / held_out / train side, not trained on."""
+    return {robot.derivation: robot.side for robot in record.robots}
 
 
-def algo_name(run: Run) -> str:
-    """The run's learner (``algo.name``; runs from before the setting are TRPO's)."""
-    return (run.config.get("algo") or {}).get("name", SPECIALIST_ALGO)
-
-
-def is_specialist(run: Run) -> bool:
-    """The reference a morphology is measured against: SE-TRPO with the padded MLP on that robot
-    alone, on real data. (A model-based run, another policy or another learner cut to one robot is
-    an entry of its own, measured against it: the universal transformer as one robot's specialist
-    says what the architecture costs without the sharing.)"""
-    return (is_grammar_run(run) and run.config["robot"].get("specialist") is not None
-            and not is_model_based(run) and run.config["policy"]["name"] == SPECIALIST_POLICY
-            and algo_name(run) == SPECIALIST_ALGO and not run.config.get("init_policy"))
-
-
-def entry_name(run: Run) -> str:
-    """A run's entry: its policy, the world model it trained on (if any), its learner where it is
-    not TRPO, the number of morphologies it trained on (1 for a run cut to one robot), its
-    token layout where it is not the default packed one (a padded MLP on another layout is
-    another policy), and whether it started from another run's policy (``init_policy``: a
-    warm start, measured against the specialists that started from nothing)."""
-    robot = run.config["robot"]
-    count = 1 if robot.get("specialist") is not None else robot.get("training_morphologies")
-    source = f" on {run.config['source']['name']}" if is_model_based(run) else ""
-    source += "" if algo_name(run) == SPECIALIST_ALGO else f" with {algo_name(run)}"
-    layout = robot.get("token_layout") or "packed"
-    layout = "" if layout == "packed" else f", {layout} layout"
-    start = ", from another run's policy" if run.config.get("init_policy") else ""
-    return f"{run.config['policy']['name']}{source}, {'all' if count is None else count} morphologies{layout}{start}"
-
-
-def final_real_steps(run: Run) -> float:
-    """The run's real env steps at its last logged epoch; NaN where its metrics do not say."""
-    try:
-        steps = real_env_steps(run)
-    except (KeyError, TypeError):  # no real_env_steps column and no epoch size in the config
-        return math.nan
-    return float(steps[-1]) if len(steps) else math.nan
-
-
-def teacher_real_steps(run: Run, root: Path = Path(".")) -> float:
-    """A distilled run's (``algo=distill``) teachers' real env steps together: what its teaching
-    cost before its own steps, which the issue's budget (the specialists' steps together) counts too.
-    Read from the teachers' checkpoints (``algo.teachers``, relative to where the run ran: a
-    worktree of the repository, whose paths ``root`` stands in for); NaN for another learner or
-    where a teacher cannot be read."""
-    if algo_name(run) != "distill":
-        return math.nan
-    # Imported here: reading checkpoints needs torch, which only this question needs.
-    from unipolicy_rl.checkpoint import load_checkpoint
-
-    total = 0.0
-    for teacher in run.config["algo"].get("teachers") or []:
-        path = Path(teacher) if Path(teacher).is_absolute() else root / teacher
-        try:
-            state = load_checkpoint(path)
-            total += state["epoch"] * real_steps_per_epoch(state["config"])
-        except (OSError, ValueError, KeyError, RuntimeError):
-            return math.nan
-    return total
-
-
-def split_sides(run: Run) -> dict[str, str]:
-    """Each derivation of the run's split -> trained / held_out / train side, not trained on."""
-    # Imported here: drawing a split builds robots, which only this question needs.
-    from unipolicy_rl.envs.config import grammar_morphologies
-
-    robot = run.config["robot"]
-    config = OmegaConf.create({**run.config, "robot": {**robot, "specialist": None}})
-    split, trained = grammar_morphologies(config, "train")
-    if robot.get("specialist") is not None:  # a run cut to one robot trained on that robot only
-        side = split.held_out if robot.get("morphologies") == "held_out" else split.train
-        trained = [side[int(robot["specialist"])]]
-    sides = {" ".join(morphology.derivation()): UNTRAINED for morphology in split.train}
-    sides.update({" ".join(morphology.derivation()): HELD_OUT for morphology in split.held_out})
-    sides.update({" ".join(morphology.derivation()): TRAINED for morphology in trained})
-    return sides
-
-
-def compare(runs: Iterable[Run], sides_of=split_sides) -> list[Comparison]:
+def compare(records: Iterable[Record]) -> list[Comparison]:
     """Every universal run's final score on every morphology, beside the specialists' median on it."""
-    runs = [run for run in runs if is_grammar_run(run)]
+    records = [record for record in records if is_grammar_run(record)]
     specialists: dict[str, list[float]] = defaultdict(list)
-    for run in filter(is_specialist, runs):
-        for score in final_scores(run):
+    for record in filter(is_specialist, records):
+        for score in final_scores(record):
             specialists[score.derivation].append(score.mean_displacement)
     comparisons = []
-    for run in runs:
-        if is_specialist(run):
+    for record in records:
+        if is_specialist(record):
             continue
-        sides = sides_of(run)
-        scores = final_scores(run)
-        own = final_real_steps(run) if scores else math.nan
-        teachers = teacher_real_steps(run) if scores else math.nan
+        side_of = sides(record)
+        scores = final_scores(record)
+        own = record.real_env_steps if scores else math.nan
+        teachers = record.grammar["teacher_steps"] if scores else math.nan
         for score in scores:
             found = specialists.get(score.derivation)
-            comparisons.append(Comparison(entry_name(run), score.derivation, sides.get(score.derivation, UNTRAINED),
-                                          score.links, score.mean_displacement,
-                                          statistics.median(found) if found else None, own, teachers, run.name))
+            comparisons.append(Comparison(record.grammar["entry"], score.derivation,
+                                          side_of.get(score.derivation, UNTRAINED), score.links,
+                                          score.mean_displacement, statistics.median(found) if found else None,
+                                          own, teachers, record.name))
     return comparisons
 
 
@@ -262,47 +172,33 @@ class MatchedSteps:
     specialist: float | None  # the specialists' median grid mean there; None where none got that far
 
 
-def periodic_curves(run: Run) -> dict[str, list[tuple[int, float]]]:
-    """The run's periodic evaluations per morphology: derivation -> [(real env steps, grid mean)]
-    in order; empty when the run has none."""
-    path = run.path / PERIODIC_CSV
-    curves: dict[str, list[tuple[int, float]]] = defaultdict(list)
-    if path.is_file():
-        with path.open(newline="") as file:
-            for row in csv.DictReader(file):
-                curves[row["derivation"]].append((int(float(row["real_env_steps"])),
-                                                  float(row["mean_forward_displacement"])))
-    return dict(curves)
-
-
 def _first_at(curve: Sequence[tuple[int, float]], steps: float) -> float | None:
     return next((value for at, value in curve if at >= steps), None)
 
 
-def compare_at_matched_steps(runs: Iterable[Run], steps: Sequence[int], sides_of=split_sides) -> list[MatchedSteps]:
+def compare_at_matched_steps(records: Iterable[Record], steps: Sequence[int]) -> list[MatchedSteps]:
     """Every universal run against the specialists on each robot it trained on, at equal real env
     steps *per robot*: the final table compares a universal run with specialists that spent the
     whole budget on one robot each; this says whether sharing one policy slows each robot's
     learning, and from when."""
     if not steps or any(not (isinstance(value, int) and value >= 1) for value in steps):
         raise ValueError(f"steps must be positive integers (real env steps per robot), got {list(steps)!r}")
-    runs = [run for run in runs if is_grammar_run(run)]
+    records = [record for record in records if is_grammar_run(record)]
     specialists: dict[str, list[list[tuple[int, float]]]] = defaultdict(list)
-    for run in filter(is_specialist, runs):
-        for derivation, curve in periodic_curves(run).items():
+    for record in filter(is_specialist, records):
+        for derivation, curve in record.periodic.items():
             specialists[derivation].append(curve)
     rows = []
-    for run in runs:
-        if is_specialist(run):
+    for record in records:
+        if is_specialist(record):
             continue
-        trained = [derivation for derivation, side in sides_of(run).items() if side == TRAINED]
-        curves = periodic_curves(run)
+        trained = [derivation for derivation, side in sides(record).items() if side == TRAINED]
         for derivation in trained:
             for per_robot in steps:
                 found = [value for curve in specialists.get(derivation, [])
                          if (value := _first_at(curve, per_robot)) is not None]
-                rows.append(MatchedSteps(run.name, derivation, per_robot,
-                                         _first_at(curves.get(derivation, []), per_robot * len(trained)),
+                rows.append(MatchedSteps(record.name, derivation, per_robot,
+                                         _first_at(record.periodic.get(derivation, []), per_robot * len(trained)),
                                          statistics.median(found) if found else None))
     return rows
 

@@ -10,7 +10,7 @@ weights, undone after), printing per setting the medians of: the surrogate gaine
 moved, the step's predicted gain, the line-search tries and the step's seconds, with the gain
 as a ratio to the first setting's. One thread.
 
-    python benchmarks/trpo_step_settings.py runs/specialist-transformer-train0/seed0/checkpoint.pt \\
+    python study/scripts/trpo_step_settings.py runs/specialist-transformer-train0/seed0/checkpoint.pt \\
         --settings 10:0.1 30:0.1 10:0.01 30:0.01
 """
 

@@ -1,12 +1,12 @@
 """Runs the league's trainings as a background queue: a frozen commit, two runs at a time, resumable.
 
     git worktree add ../league <commit>          # the code the study measures, frozen
-    nohup python benchmarks/league_queue.py --code ../league --runs ../league_runs \\
+    nohup python study/queue.py --code ../league --runs ../league_runs \\
         --entries se-trpo,se-moe-trpo --seeds 0-4 > ../league_runs/queue.log 2>&1 &
-    python benchmarks/league.py ../league_runs/*  # the table, whenever
+    python study/league/report.py ../league_runs/*  # the table, whenever
 
 Each run is ``<runs>/<entry>/seed<k>``, trained by ``<code>/train.py`` with the entry's overrides
-from ``benchmarks/league_plan.yaml``, its seed, its budget (``epochs``), ``checkpoint_every=5``
+from ``study/league_plan.yaml``, its seed, its budget (``epochs``), ``checkpoint_every=5``
 and no progress bar. Runs go seed by seed (every entry's seed 0, then seed 1, ...), so a queue
 cut short leaves every entry with the same seeds. A run whose folder holds a checkpoint resumes
 from it with the same overrides; one whose checkpoint has reached its budget is skipped once its
@@ -30,7 +30,7 @@ checkpoint leaves the archive and its final policy alone stays, as ``policy.pt``
 their epoch's end with a checkpoint, and are archived): on a machine lent for a fixed time, the
 records are final before it goes.
 ``--stop-at-level {a,b,c}`` stops each run once its periodic evaluations have reached that league
-level (:data:`unipolicy_rl.report.league.LEVELS`) and ``--stop-from-steps`` real env steps (e.g.
+level (:data:`study.league.levels.LEVELS`) and ``--stop-from-steps`` real env steps (e.g.
 50,000, the first milestone of the league's (d)), and starts no run that already has: a study of
 steps to a level spends no core-hours past it, and a wall-time comparison ends where its measure does.
 """
@@ -50,8 +50,14 @@ from pathlib import Path
 import torch
 import yaml
 
-from unipolicy_rl.report.league import LEVELS, evaluations
-from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run
+# Run as a file, the script's folder leads sys.path (where ``queue.py`` would shadow the standard
+# library's): the repository root takes its place, for ``import study``.
+if __package__ in (None, ""):
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+from study.league.levels import LEVELS  # noqa: E402
+from study.records import run_evaluations  # noqa: E402
+from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run  # noqa: E402
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
@@ -86,7 +92,7 @@ class Run:
         or ``c``), once its evaluations have got to ``from_steps`` real steps; None before."""
         if not (self.folder / "metrics.csv").is_file():
             return None
-        done = evaluations(load_run(self.folder, f"{self.entry}/seed{self.seed}"))
+        done = run_evaluations(load_run(self.folder, f"{self.entry}/seed{self.seed}"))
         at = LEVELS_BY_NAME[level].find(done)
         return at.steps if at is not None and done[-1].steps >= from_steps else None
 
@@ -229,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=2, help="runs at once (2: one per core here)")
     parser.add_argument("--nice", type=int, default=10, help="niceness of the runs (10)")
     parser.add_argument("--archive", type=Path, default=None,
-                        help="copy each run's record here (<archive>/<entry>/seed<k>), e.g. docs/league/runs")
+                        help="copy each run's small files here (<archive>/<entry>/seed<k>), e.g. ../league_archive "
+                             "(study/records.py then writes their compact records)")
     parser.add_argument("--archive-every", type=float, default=600.0,
                         help="seconds between copies of the running runs' records (600)")
     parser.add_argument("--carry-checkpoints", type=float, default=0.0, metavar="MIB",

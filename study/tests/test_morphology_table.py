@@ -1,20 +1,32 @@
-"""The specialist/universal table (issue 23) computed right on hand-made run folders."""
+"""The specialist/universal table (issue 23) computed right on hand-made run folders, through
+their compact records (:mod:`study.records`) as the report reads them."""
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
+import tempfile
 from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from unipolicy_rl.report import morphologies as table
+from study import records
+from study.morphology import grammar_runs, table
+from study.morphology import report as benchmark
+from study.scripts import morphology_windows
 from unipolicy_rl.report.runs import load_run
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SIDES = {"a": table.TRAINED, "b": table.TRAINED, "c": table.UNTRAINED, "x": table.HELD_OUT, "y": table.HELD_OUT}
+
+
+def record_of(path: Path, sides_of=lambda run: SIDES) -> records.Record:
+    """The run folder's record, written to disk and read back (the split's sides as ``sides_of`` draws them)."""
+    with pytest.MonkeyPatch.context() as patch, tempfile.TemporaryDirectory() as folder:
+        patch.setattr(grammar_runs, "split_sides", sides_of)
+        record = records.from_run(load_run(path, path.name))
+        return records.read(records.write(record, Path(folder)), path.name)
 
 
 def write_run(root: Path, name: str, policy: str, scores: dict[str, float], specialist: int | None = None,
@@ -27,7 +39,7 @@ def write_run(root: Path, name: str, policy: str, scores: dict[str, float], spec
               "robot": {"kind": "grammar", "specialist": specialist, "training_morphologies": training_morphologies}}
     OmegaConf.save(OmegaConf.create(config), path / ".hydra" / "config.yaml")
     (path / "metrics.csv").write_text("epoch\n1\n")
-    with (path / table.MORPHOLOGIES_CSV).open("w", newline="") as file:
+    with (path / grammar_runs.MORPHOLOGIES_CSV).open("w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=["morphology", "links", "mean_forward_displacement",
                                                   "min_forward_displacement", "derivation"])
         writer.writeheader()
@@ -50,11 +62,11 @@ def runs(tmp_path):
         write_run(tmp_path, "mlp", "token_mlp", {"a": 1.5, "b": 2.0, "x": 1.0, "y": 0.0, "z": 5.0},
                   training_morphologies=2),
     ]
-    return [load_run(path, path.name) for path in paths]
+    return [record_of(path) for path in paths]
 
 
 def test_each_morphology_is_compared_with_its_specialists_median_by_derivation(runs):
-    rows = {(row.entry, row.derivation): row for row in table.compare(runs, sides_of=lambda run: SIDES)}
+    rows = {(row.entry, row.derivation): row for row in table.compare(runs)}
     transformer = "token_transformer, 2 morphologies"
     assert rows[transformer, "a"].specialist == 3.0 and rows[transformer, "a"].ratio == 1.0
     assert rows[transformer, "b"].ratio == 0.25 and rows[transformer, "x"].ratio == 0.75
@@ -64,7 +76,7 @@ def test_each_morphology_is_compared_with_its_specialists_median_by_derivation(r
 
 
 def test_the_summary_takes_medians_over_trained_and_held_out_morphologies_and_counts_walkers(runs):
-    comparisons = table.compare(runs, sides_of=lambda run: SIDES)
+    comparisons = table.compare(runs)
     summary = {row.entry: row for row in table.summarize(comparisons)}
     transformer = summary["token_transformer, 2 morphologies"]
     assert transformer.trained_ratio == pytest.approx(0.625)  # median of 1.0 and 0.25
@@ -84,10 +96,10 @@ def test_a_model_based_run_is_an_entry_measured_against_the_real_specialists(tmp
     config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
     config.source = {"name": "moe", "kind": "model"}
     OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
-    runs = [load_run(path, path.name) for path in paths]
+    runs = [record_of(path) for path in paths]
     assert [table.is_specialist(run) for run in runs] == [True, False]
     assert [score.mean_displacement for score in table.specialist_scores(runs)] == [4.0]
-    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    (row,) = table.compare(runs)
     assert (row.entry, row.universal, row.specialist, row.ratio) == ("token_mlp on moe, 1 morphologies", 3.0, 4.0, 0.75)
     text = table.format_table([row], table.summarize([row]))
     assert "| token_mlp on moe, 1 morphologies | 75% (1 compared) | 1/1 | - (0 compared) | - |" in text
@@ -99,9 +111,9 @@ def test_a_run_with_another_learner_is_an_entry_not_a_specialist(tmp_path):
     config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
     config.algo = {"name": "ppo"}
     OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
-    runs = [load_run(path, path.name) for path in paths]
+    runs = [record_of(path) for path in paths]
     assert [table.is_specialist(run) for run in runs] == [True, False]
-    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    (row,) = table.compare(runs)
     assert (row.entry, row.specialist, row.ratio) == ("token_mlp with ppo, 1 morphologies", 4.0, 0.5)
 
 
@@ -113,9 +125,9 @@ def test_a_run_started_from_another_run_s_policy_is_an_entry_not_a_specialist(tm
     config = OmegaConf.load(paths[1] / ".hydra" / "config.yaml")
     config.init_policy = "runs/distilled/checkpoint.pt"
     OmegaConf.save(config, paths[1] / ".hydra" / "config.yaml")
-    runs = [load_run(path, path.name) for path in paths]
+    runs = [record_of(path) for path in paths]
     assert [table.is_specialist(run) for run in runs] == [True, False]
-    (row,) = table.compare(runs, sides_of=lambda run: SIDES)
+    (row,) = table.compare(runs)
     assert (row.entry, row.specialist, row.ratio) == ("token_mlp, 1 morphologies, from another run's policy", 2.0, 1.5)
 
 
@@ -124,7 +136,7 @@ def test_a_run_on_the_structural_layout_is_an_entry_of_its_own(runs, tmp_path):
     config = OmegaConf.load(path / ".hydra" / "config.yaml")
     config.robot.token_layout = "structural"
     OmegaConf.save(config, path / ".hydra" / "config.yaml")
-    rows = table.compare([*runs, load_run(path, path.name)], sides_of=lambda run: SIDES)
+    rows = table.compare([*runs, record_of(path)])
     by_entry = {}
     for row in rows:
         by_entry.setdefault(row.entry, []).append(row.derivation)
@@ -144,7 +156,7 @@ def test_a_run_cut_to_one_robot_trained_on_that_robot_alone(tmp_path):
     path = write_run(tmp_path, "moe_train1", "token_mlp", {})
     OmegaConf.save(cfg, path / ".hydra" / "config.yaml")
     split, _ = grammar_morphologies(cfg, "all")
-    sides = table.split_sides(load_run(path, path.name))
+    sides = grammar_runs.split_sides(load_run(path, path.name))
     names = [" ".join(morphology.derivation()) for morphology in (*split.train, *split.held_out)]
     assert [sides[name] for name in names] == [table.UNTRAINED, table.TRAINED, table.UNTRAINED,
                                                table.HELD_OUT, table.HELD_OUT]
@@ -152,9 +164,9 @@ def test_a_run_cut_to_one_robot_trained_on_that_robot_alone(tmp_path):
 
 def test_an_evaluation_run_again_counts_once_with_its_last_row(tmp_path):
     path = write_run(tmp_path, "spec", "token_mlp", {"a": 1.0}, specialist=0)
-    with (path / table.MORPHOLOGIES_CSV).open("a", newline="") as file:
+    with (path / grammar_runs.MORPHOLOGIES_CSV).open("a", newline="") as file:
         file.write("0,7,2.5,1.0,a\n")
-    scores = table.final_scores(load_run(path, "spec"))
+    scores = table.final_scores(record_of(path))
     assert [(score.derivation, score.mean_displacement) for score in scores] == [("a", 2.5)]
 
 
@@ -173,9 +185,6 @@ def test_the_benchmark_prints_the_table_from_real_split_sides(tmp_path, capsys):
     cfg.run_name = "se-trpo"  # what Hydra's runtime resolves in a run
     OmegaConf.save(cfg, universal / ".hydra" / "config.yaml")
     write_run(tmp_path, "specialist", "token_mlp", {names[3]: 4.0}, specialist=0)
-    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
     assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out")]) == 0
     printed = capsys.readouterr().out
     assert "| token_mlp, 2 morphologies | - (0 compared) | 2/2 | 50% (1 compared) | 2.00 m |" in printed
@@ -191,14 +200,11 @@ def test_the_specialists_are_listed_before_any_universal_run_has_finished(tmp_pa
                                      "policy": {"name": "token_mlp"},
                                      "robot": {"kind": "grammar", "specialist": 0, "morphologies": "held_out"}}),
                    write_run(tmp_path, "spec_x", "token_mlp", {"x": 2.0}, specialist=0) / ".hydra" / "config.yaml")
-    runs = [load_run(path, path.name) for path in sorted(tmp_path.iterdir())]
+    runs = [record_of(path) for path in sorted(tmp_path.iterdir())]
     scores = table.specialist_scores(runs)
     assert [(s.side, s.index, s.seed, s.derivation, s.mean_displacement) for s in scores] == [
         ("train", 0, 0, "a", 4.0), ("train", 1, 0, "b", 0.5), ("held_out", 0, 3, "x", 2.0)]
     assert "2 of 3 specialists walk" in table.format_specialists(scores)
-    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
     assert benchmark.main([str(tmp_path), "--out", str(tmp_path / "out"), "--no-pictures"]) == 0
     printed = capsys.readouterr().out
     assert "| held_out | 0 | 3 | 7 | 2.00 m | 1.00 m | x |" in printed and "the specialists only" in printed
@@ -208,9 +214,6 @@ def test_the_specialists_are_listed_before_any_universal_run_has_finished(tmp_pa
 
 def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_path, capsys):
     """Panels from specialists alone: one per morphology, the median over its seeds, training side first."""
-    spec = importlib.util.spec_from_file_location("morphology_table", ROOT / "benchmarks" / "morphology_table.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
     scores = [table.SpecialistScore("held_out", 0, 0, 9, 2.0, 1.0, "x"),
               table.SpecialistScore("train", 1, 0, 12, 1.0, 0.5, "b"),
               table.SpecialistScore("train", 1, 1, 12, 3.0, 1.5, "b"),
@@ -245,7 +248,7 @@ def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_p
 
 def write_periodic(path: Path, rows: list[tuple[int, str, float]]) -> None:
     """The run's periodic evaluations: (real env steps, derivation, grid mean) per row."""
-    with (path / table.PERIODIC_CSV).open("w", newline="") as file:
+    with (path / grammar_runs.PERIODIC_CSV).open("w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=["epoch", "real_env_steps", "morphology",
                                                   "mean_forward_displacement", "derivation"])
         writer.writeheader()
@@ -268,12 +271,12 @@ def test_matched_steps_compare_each_robot_at_equal_real_steps_per_robot(tmp_path
     write_periodic(universal, [(steps, name, value) for steps, values in ((20000, (0.2, 0.1)), (40000, (1.0, 0.4)),
                                                                           (80000, (1.5, 0.6)))
                                for name, value in zip("ab", values, strict=True)])
-    runs = [load_run(path, path.name) for path in (spec_a, spec_b, other, universal)]
-    assert [table.is_specialist(run) for run in runs] == [True, True, False, False]
     def sides_of(run):  # a run cut to one robot trained on that robot alone (split_sides)
         return {"a": table.TRAINED} if run.name == "spec_a_transformer" else SIDES
 
-    rows = table.compare_at_matched_steps(runs, [20000, 40000], sides_of=sides_of)
+    runs = [record_of(path, sides_of) for path in (spec_a, spec_b, other, universal)]
+    assert [table.is_specialist(run) for run in runs] == [True, True, False, False]
+    rows = table.compare_at_matched_steps(runs, [20000, 40000])
     found = {(row.run, row.derivation, row.steps): (row.universal, row.specialist) for row in rows}
     assert found["universal", "a", 20000] == (1.0, 0.5)
     assert found["universal", "b", 20000] == (0.4, 0.3)
@@ -286,7 +289,7 @@ def test_matched_steps_compare_each_robot_at_equal_real_steps_per_robot(tmp_path
     assert "| universal | 20,000 | 1.00 0.40 | 0.50 0.30 | 0.70 m | 0.40 m (2 robots) | 167% | 2 of 2 |" in text
     assert "| universal | 40,000 | 1.50 0.60 | 2.00 - | 1.50 m | 2.00 m (1 robots) | 75% | 0 of 1 |" in text
     with pytest.raises(ValueError, match=r"steps must be positive integers \(real env steps per robot\), got \[0\]"):
-        table.compare_at_matched_steps(runs, [0], sides_of=lambda run: SIDES)
+        table.compare_at_matched_steps(runs, [0])
 
 
 def test_the_windows_benchmark_groups_evaluations_by_steps_per_training_robot(tmp_path, capsys):
@@ -310,17 +313,15 @@ def test_the_windows_benchmark_groups_evaluations_by_steps_per_training_robot(tm
         writer.writerow(["epoch", "real_env_steps", "morphology", "mean_forward_displacement"])
         for steps, values in rows:
             writer.writerows([steps // 1000, steps, robot, value] for robot, value in enumerate(values))
-    spec = importlib.util.spec_from_file_location("morphology_windows", ROOT / "benchmarks" / "morphology_windows.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
-    trained, windows = benchmark.windows(run, 2000.0)
+    windows_of = morphology_windows.windows
+    trained, windows = windows_of(run, 2000.0)
     assert trained == 2
     assert windows == [pytest.approx((0.0, 1, 2.0, 0.0, 0.0, 0.0)), pytest.approx((2000.0, 1, 3.0, 0.4, 0.4, 0.4))]
     # in the run's real env steps in all: 2,000 and 6,000 fall in the 2,000-4,000 and 6,000-8,000 windows
-    _, in_total = benchmark.windows(run, 2000.0, per_robot=False)
+    _, in_total = windows_of(run, 2000.0, per_robot=False)
     assert [window[0] for window in in_total] == [2000.0, 6000.0]
     with pytest.raises(SystemExit, match="no evaluation/periodic_morphologies.csv"):
-        benchmark.seed_folder(tmp_path / "missing", 0)
+        morphology_windows.seed_folder(tmp_path / "missing", 0)
 
 
 def test_a_distilled_entry_counts_its_own_real_steps_and_its_teachers_beside_them(tmp_path):
@@ -338,13 +339,13 @@ def test_a_distilled_entry_counts_its_own_real_steps_and_its_teachers_beside_the
     config.algo = {"name": "distill", "teachers": teachers}
     OmegaConf.save(config, path / ".hydra" / "config.yaml")
     (path / "metrics.csv").write_text("epoch,real_env_steps\n1,1000\n2,2000\n")
-    (run,) = [load_run(path, path.name)]
-    assert table.teacher_real_steps(run) == 300 * 1000 + 200 * 1000
-    comparisons = table.compare([run], sides_of=lambda run: SIDES)
+    assert grammar_runs.teacher_real_steps(load_run(path, path.name)) == 300 * 1000 + 200 * 1000
+    run = record_of(path)
+    comparisons = table.compare([run])
     (summary,) = table.summarize(comparisons)
     assert (summary.entry, summary.real_steps, summary.teacher_steps) == (
         "token_modular with distill, 2 morphologies", 2000, 500_000)
     assert "| 2,000 + 500,000 (teachers) |" in table.format_table(comparisons, [summary])
     # a teacher that cannot be read leaves the teachers' steps unknown, not zero
     Path(teachers[1]).unlink()
-    assert math.isnan(table.teacher_real_steps(run))
+    assert math.isnan(grammar_runs.teacher_real_steps(load_run(path, path.name)))

@@ -1,7 +1,7 @@
 """What a padded MLP's slots mean under each token layout: roles per slot over the training robots,
 and how much of each held-out robot sits where a training robot had a link of the same role.
 
-    python benchmarks/slot_roles.py [--training 8,16,32]
+    python study/scripts/slot_roles.py [--training 8,16,32]
 
 A link's role is what the structural layout keys its slot on (body segment ``i``; leg pair ``k``,
 its side, and the link's place along the leg: ``unipolicy_rl/envs/slot_layout.py``). The split

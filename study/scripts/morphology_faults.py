@@ -1,6 +1,6 @@
 """Which of the split's robots the simulator runs: physics faults per morphology under random actions.
 
-    python benchmarks/morphology_faults.py [--side train|held_out] [--count 8] [--robots 8] [--steps 100] [--seed 0]
+    python study/scripts/morphology_faults.py [--side train|held_out] [--count 8] [--robots 8] [--steps 100] [--seed 0]
         [Hydra overrides of the grammar config, e.g. robot.physics.max_joint_speed=null]
 
 A robot that stands (the split's filter) can still blow up once driven: a light distal link

@@ -9,7 +9,7 @@ that did, so a median is only given when at least half the runs of a source walk
 
     python train.py -m source=se seed=0,1,2 hydra.sweep.dir=runs/se
     python train.py -m source=moe seed=0,1,2 epochs=30 hydra.sweep.dir=runs/moe
-    python benchmarks/sample_efficiency.py runs/se runs/moe
+    python study/scripts/sample_efficiency.py runs/se runs/moe
 
 The wall times are those of the runs themselves: compare them only between runs that shared
 the machine alike (the raw-physics rate of ``benchmarks/env_throughput.py`` on the same machine
