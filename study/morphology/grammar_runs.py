@@ -144,7 +144,7 @@ def describe(run: Run, teachers_root: Path = Path(".")):
     specialist = is_specialist(run)
     sides = {} if specialist else split_sides(run)
     order = [d for d, side in sides.items() if side == TRAINED or d in final or d in periodic]
-    order += [d for d in [*final, *periodic] if d not in sides and d not in order]
+    order += [d for d in dict.fromkeys([*final, *periodic]) if d not in sides]
     links = _links(run)
     robots = []
     for derivation in order:

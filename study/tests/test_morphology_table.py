@@ -200,7 +200,9 @@ def test_the_specialists_are_listed_before_any_universal_run_has_finished(tmp_pa
                                      "policy": {"name": "token_mlp"},
                                      "robot": {"kind": "grammar", "specialist": 0, "morphologies": "held_out"}}),
                    write_run(tmp_path, "spec_x", "token_mlp", {"x": 2.0}, specialist=0) / ".hydra" / "config.yaml")
+    write_periodic(tmp_path / "spec_a", [(1000, "a", 0.5)])  # a robot in both evaluations: one row of its record
     runs = [record_of(path) for path in sorted(tmp_path.iterdir())]
+    assert [robot.derivation for robot in runs[0].robots] == ["a"]
     scores = table.specialist_scores(runs)
     assert [(s.side, s.index, s.seed, s.derivation, s.mean_displacement) for s in scores] == [
         ("train", 0, 0, "a", 4.0), ("train", 1, 0, "b", 0.5), ("held_out", 0, 3, "x", 2.0)]
