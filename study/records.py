@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -249,19 +250,23 @@ def read(folder: Path, name: str) -> Record:
 def load(roots: list[Path]) -> tuple[list[Record], list[str]]:
     """Every record under ``roots`` (folders holding a ``record.yaml``), and every run folder there
     read into one on the fly (a study's runs still going); with the reasons runs were left out.
-    Each is named by its path under its root (the root's own name when it is one)."""
+    Each is named by its path under its root, or under the roots' common folder when there are
+    several (the root's own name when it is one)."""
     records, left_out = [], []
     for root in roots:
         if not root.is_dir():
             raise ReportError(f"{root}: no such directory")
+    base = Path(os.path.commonpath([root.resolve() for root in roots])) if len(roots) > 1 else None
+    for root in roots:
+        name_root = root if base is None else base
         folders = sorted(path.parent for path in root.rglob(RECORD))
         for folder in folders:
-            records.append(read(folder, _name(folder, root)))
+            records.append(read(folder, _name(folder, name_root)))
         if folders:
             continue
         paths, _ = discover_runs([root])
         for path in paths:
-            run = load_run(path, _name(path, root))
+            run = load_run(path, _name(path, name_root))
             if run.config is None or run.source is None:
                 left_out.append(f"{run.name}: {'; '.join(run.problems) or 'no config'}")
                 continue
@@ -270,6 +275,7 @@ def load(roots: list[Path]) -> tuple[list[Record], list[str]]:
 
 
 def _name(folder: Path, root: Path) -> str:
+    folder, root = folder.resolve(), root.resolve()
     return folder.name if folder == root else str(folder.relative_to(root))
 
 

@@ -7,26 +7,31 @@ design. From those evaluations, per run:
 
 - ``first_walk`` (a): the first evaluation that walks the grid: grid mean >= 3 m and every
   design >= 1 m (:func:`~unipolicy_rl.evaluation.walks_the_grid`).
-- ``stays_walking`` (b): the first evaluation that starts a streak of :data:`STREAK` (3)
-  consecutive evaluations that walk the grid; the level reports the real env steps (and wall
-  time) of the streak's *first* evaluation. A run that walks once and falls back does not
-  reach it there.
+- ``stays_walking`` (b): the evaluation that completes the first streak of :data:`STREAK` (3)
+  consecutive evaluations that walk the grid: the level is credited at the streak's *third*,
+  confirming evaluation, when a user watching the run could say it stays walking. A run that
+  walks once and falls back does not reach it there.
 - ``se_trpo_final`` (c): the first evaluation at SE-TRPO's final level: grid mean >=
   :data:`SE_TRPO_FINAL_MEAN` (5 m) and every design >= :data:`SE_TRPO_FINAL_MIN` (2.5 m).
 - (d) the grid mean and worst design at the first evaluation at or after each of
   :data:`MILESTONES` (50,000, 100,000 and 300,000 real env steps); None where the run did not
   get there.
 
-An entry is a run name (``Run.source``: ``se-trpo``, ``se-moe-trpo``), its runs the seeds;
+An entry is a run name (``run_name``: ``se-trpo``, ``se-moe-trpo``), its runs the seeds;
 model-free entries are those whose config says ``source.kind: real``. Per entry and level: how
 many runs reached it, the median real env steps (and wall and CPU seconds) with a run that never
 reached it counting as longer than any that did (``inf``), a percentile-bootstrap 95% interval
 of that median (runs resampled with replacement, seeded; a bound may be ``inf``: "not
 reached"), and how many times fewer real env steps it took than SE-TRPO and than the best
-model-free entry (the one with the smallest median at that level). While some runs are still
-going, the median is provisional; beside it the table prints what it is already known to be at
-least, each unfinished run counted at the earliest it could still reach the level: the bound
-that says when a comparison is decided and the remaining runs can be cut.
+model-free entry (the one with the smallest median at that level). A run cut before its budget
+(stopped, or still going) that has not reached a level is censored there, not a failure: beside
+the median the table prints what it is already known to be at least, each cut run counted at the
+earliest it could still reach the level, and a median the cut runs leave open reads "not reached
+by N (cut)": N real env steps were not enough, more were not tried.
+
+Seconds compare only between runs on one machine at one load: a record names its machine
+(``machine``, a label given when it was written), and the table shows seconds only where every run
+in it carries the same label.
 """
 
 from __future__ import annotations
@@ -68,14 +73,14 @@ def first_walk(evaluations: Sequence[Evaluation]) -> Evaluation | None:
 
 
 def stays_walking(evaluations: Sequence[Evaluation], streak: int = STREAK) -> Evaluation | None:
-    """(b) The first evaluation of the first ``streak`` consecutive evaluations that all walk the
-    grid: the level reports the streak's *first* evaluation (its steps and wall time), not the
-    one that completes it. None while no such streak is complete."""
+    """(b) The evaluation that completes the first ``streak`` consecutive evaluations that all walk
+    the grid: the level is credited there (its steps and wall time), when the streak is confirmed,
+    not at its first evaluation. None while no such streak is complete."""
     run = 0
-    for i, e in enumerate(evaluations):
+    for e in evaluations:
         run = run + 1 if walks_the_grid(e.grid_mean, e.grid_min) else 0
         if run == streak:
-            return evaluations[i - streak + 1]
+            return e
     return None
 
 
@@ -90,21 +95,11 @@ def at_milestone(evaluations: Sequence[Evaluation], steps: float) -> Evaluation 
 
 
 def earliest_still_possible(evaluations: Sequence[Evaluation], key: str) -> float:
-    """The fewest real env steps at which a run still going, that has not reached level ``key``
-    yet, could still be found to reach it: its last evaluation's (the next comes later), or for
-    (b) the first evaluation of the walking streak it ends on (two more walking evaluations would
-    complete it there); 0 before its first evaluation. A lower bound, never a guess."""
-    if not evaluations:
-        return 0.0
-    if key == "stays_walking":
-        streak = 0
-        for e in reversed(evaluations):
-            if not walks_the_grid(e.grid_mean, e.grid_min):
-                break
-            streak += 1
-        if streak:
-            return evaluations[-streak].steps
-    return evaluations[-1].steps
+    """The fewest real env steps at which a run cut before its budget, that has not reached level
+    ``key``, could still have been found to reach it: its last evaluation's (every level, (b)
+    included, is credited at an evaluation, and the next comes later); 0 before its first
+    evaluation. A lower bound, never a guess."""
+    return evaluations[-1].steps if evaluations else 0.0
 
 
 @dataclass(frozen=True)
@@ -118,8 +113,8 @@ class Level:
 LEVELS = (
     Level("first_walk", "(a)", f"first walks the grid: grid mean >= {GRID_WALKING_MEAN:g} m and every design >= "
           f"{WALKING_DISPLACEMENT:g} m", first_walk),
-    Level("stays_walking", "(b)", f"walks and stays walking: the first of {STREAK} consecutive evaluations that "
-          f"walk the grid", stays_walking),
+    Level("stays_walking", "(b)", f"walks and stays walking: credited at the last of {STREAK} consecutive "
+          f"evaluations that walk the grid", stays_walking),
     Level("se_trpo_final", "(c)", f"SE-TRPO's final level: grid mean >= {SE_TRPO_FINAL_MEAN:g} m and every design "
           f">= {SE_TRPO_FINAL_MIN:g} m", se_trpo_final),
 )
@@ -138,9 +133,12 @@ class RunResult:
     evaluations: tuple[Evaluation, ...]
     levels: dict[str, Evaluation | None]
     milestones: dict[int, Evaluation | None]
-    # Trained to its budget (its final evaluation exists). A run still going that has not reached a
-    # level yet may still reach it: the table counts it apart ("unfinished"), not as never reaching it.
+    # Trained to its budget (its final evaluation exists). A run cut before it (stopped, or still
+    # going) that has not reached a level is censored there: the table counts it apart ("cut"), not
+    # as never reaching it.
     finished: bool = True
+    machine: str | None = None  # runs with one label ran on one machine at one load (their seconds compare)
+    fit: str = "-"  # the model fit's precision and threads, as the record names them ("-": no model)
 
 
 def run_result(record: Record) -> RunResult:
@@ -148,7 +146,24 @@ def run_result(record: Record) -> RunResult:
     return RunResult(name=record.name, entry=record.entry, seed=record.seed, model_free=record.model_free,
                      step_schedule=record.step_schedule, evaluations=tuple(found),
                      levels={level.key: level.find(found) for level in LEVELS},
-                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=record.finished)
+                     milestones={steps: at_milestone(found, steps) for steps in MILESTONES}, finished=record.finished,
+                     machine=record.machine, fit=fit_settings(record))
+
+
+def fit_settings(record: Record) -> str:
+    """What the model's fits ran in: ``bfloat16, 2 threads``; ``-`` for a run without a model."""
+    if record.model_free:
+        return "-"
+    if record.precision is None:
+        return "not recorded"  # a run from before the setting, or a model fitted in closed form
+    threads = "torch's default threads" if record.threads is None else f"{record.threads} threads"
+    return f"{record.precision}, {threads}"
+
+
+def one_machine(runs: Sequence[RunResult]) -> str | None:
+    """The machine label every run shares (their seconds compare), or None."""
+    labels = {run.machine for run in runs}
+    return labels.pop() if len(labels) == 1 and None not in labels else None
 
 
 # -- statistics ------------------------------------------------------------------------
@@ -289,7 +304,11 @@ def ratio_lines(entries: Sequence[Entry], key: str, baseline: str = BASELINE) ->
     best = best_model_free(entries, key)
     lines = {}
     for entry in entries:
-        steps = entry.levels[key].steps
+        stats = entry.levels[key]
+        steps = stats.steps
+        if math.isinf(steps) and stats.unfinished and math.isfinite(stats.steps_at_least):
+            lines[entry.name] = ("- (cut)", "- (cut)")  # censored: not a failure to compare
+            continue
         versus_baseline = format_fewer(fewer(reference.levels[key].steps, steps)) if reference else "no runs"
         versus_best = format_fewer(fewer(best.levels[key].steps, steps)) if best else "none reached"
         lines[entry.name] = (versus_baseline, versus_best)
@@ -301,21 +320,21 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
     median real env steps [95% interval], the median wall time, and the two ratios; then the
     grid at each milestone."""
     width = max([len("entry"), *(len(entry.name) for entry in entries)])
-    lines = [f"{'entry':<{width}}  {'kind':<11} {'runs':>4}  seeds"]
+    machine = one_machine([run for entry in entries for run in entry.runs])
+    lines = [f"{'entry':<{width}}  {'kind':<11} {'runs':>4}  {'seeds':<24} model fit"]
     for entry in entries:
         kind = "model-free" if entry.model_free else "model-based"
+        fits = "; ".join(sorted({run.fit for run in entry.runs}))
         lines.append(f"{entry.name:<{width}}  {kind:<11} {len(entry.runs):>4}  "
-                     f"{', '.join(str(seed) for seed in entry.seeds)}")
+                     f"{', '.join(str(seed) for seed in entry.seeds):<24} {fits}".rstrip())
     for level in LEVELS:
         best = best_model_free(entries, level.key)
         ratios = ratio_lines(entries, level.key, baseline)
         rows = []
         for entry in entries:
             stats = entry.levels[level.key]
-            steps = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
-            if stats.unfinished and stats.steps_at_least != stats.steps:
-                steps += f" (>= {format_count(stats.steps_at_least)} so far)"
-            unfinished = f" ({stats.unfinished} unfinished)" if stats.unfinished else ""
+            steps = format_median(stats)
+            unfinished = f" ({stats.unfinished} cut)" if stats.unfinished else ""
             rows.append((entry.name, f"{stats.reached}/{stats.runs}{unfinished}", steps, stats))
         reached_width = max([18, *(len(row[1]) for row in rows)])
         steps_width = max([44, *(len(row[2]) + 1 for row in rows)])
@@ -324,9 +343,9 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
                   f"{'median wall s':>13} {'median CPU s':>12}  "
                   f"{'vs ' + baseline:<17} vs best model-free ({best.name if best else 'none reached'})"]
         for name, reached, steps, stats in rows:
+            wall, cpu = ((format_count(stats.seconds), format_count(stats.cpu_seconds)) if machine else ("-", "-"))
             lines.append(f"{name:<{width}}  {reached:>{reached_width}}  {steps:<{steps_width}} "
-                         f"{format_count(stats.seconds):>13} {format_count(stats.cpu_seconds):>12}  "
-                         f"{ratios[name][0]:<17} {ratios[name][1]}")
+                         f"{wall:>13} {cpu:>12}  {ratios[name][0]:<17} {ratios[name][1]}")
     lines += ["", "(d) the grid at the first evaluation at or after each milestone: median grid mean / median worst "
               "design (m), over the runs that got there"]
     lines.append((f"{'entry':<{width}}  " + "  ".join(f"{f'{steps:,} steps':<22}" for steps in MILESTONES)).rstrip())
@@ -339,13 +358,27 @@ def format_league(entries: Sequence[Entry], baseline: str = BASELINE) -> str:
             else:
                 cells.append(f"- (0/{len(entry.runs)})")
         lines.append((f"{entry.name:<{width}}  " + "  ".join(f"{cell:<22}" for cell in cells)).rstrip())
-    lines += ["", "(>= N so far): while runs are unfinished, the median is at least N however they go on (each "
-              "counted at the earliest it could still reach the level)",
+    seconds = (f"all runs on one machine at one load ({machine})" if machine else
+               "'-': the runs did not all run on one machine at one load (their records name no common machine), "
+               "so their seconds do not compare")
+    lines += ["", "(k cut): runs stopped before their budget that had not reached the level: censored, not failures; "
+              "(>= N with the cut runs): the median is at least N however they would have gone on (each counted at "
+              "its last evaluation); not reached by N (cut): the cut runs leave the median open past N real env steps",
               "median wall s: wall seconds spent training (collecting, fitting, updating), the periodic "
               "evaluations and checkpoints left out; median CPU s: the CPU seconds of the same spans, every core "
               "and the collector's worker processes counted (time/cpu; '-' where a run from before it did not "
-              "log them)"]
+              f"log them); seconds: {seconds}"]
     return "\n".join(lines)
+
+
+def format_median(stats: LevelStats) -> str:
+    """A level's median real env steps [95% interval], with what the cut runs leave open."""
+    if math.isinf(stats.steps) and stats.unfinished and math.isfinite(stats.steps_at_least):
+        return f"not reached by {format_count(stats.steps_at_least)} (cut)"
+    text = f"{format_count(stats.steps)} {format_interval(stats.steps_interval)}"
+    if stats.unfinished and stats.steps_at_least != stats.steps:
+        text += f" (>= {format_count(stats.steps_at_least)} with the cut runs)"
+    return text
 
 
 def cpu_note(evaluation: Evaluation) -> str:
@@ -353,20 +386,28 @@ def cpu_note(evaluation: Evaluation) -> str:
     return "" if math.isnan(evaluation.cpu_seconds) else f", {evaluation.cpu_seconds:,.0f} CPU s"
 
 
+def reached_at(evaluation: Evaluation | None, timed: bool) -> str:
+    """A run's real env steps at a level, and its seconds there where they compare (``timed``)."""
+    if evaluation is None:
+        return "-"
+    seconds = f" ({evaluation.seconds:,.0f} s{cpu_note(evaluation)})" if timed else ""
+    return f"{format_count(evaluation.steps)}{seconds}"
+
+
 def format_runs(results: Sequence[RunResult]) -> str:
     """Each run: its entry, seed, and the real env steps (and training seconds) at which it reached each level.
 
-    The seconds are the run's own: compare them between runs that shared the machine alike
-    (the entries' medians mix runs of different days and loads)."""
+    Seconds are shown for runs whose record names their machine (:func:`one_machine`): compare them
+    between runs with the same label only."""
     width = max([len("run"), *(len(result.name) for result in results)])
     lines = [f"{'run':<{width}}  {'entry':<16} " + " ".join(f"{level.label + ' ' + level.key:>22}" for level in LEVELS)
              + f" {'evaluations':>11} {'last at':>9}  status"]
     for result in results:
-        reached = " ".join(f"{f'{format_count(e.steps)} ({e.seconds:,.0f} s{cpu_note(e)})' if e else '-':>22}"
-                           for e in result.levels.values())
+        timed = result.machine is not None
+        reached = " ".join(f"{reached_at(e, timed):>22}" for e in result.levels.values())
         last = f"{result.evaluations[-1].steps:,.0f}" if result.evaluations else "-"
         note = "" if result.step_schedule else "  (evaluated every evaluation.every epochs: an older run)"
-        status = "done" if result.finished else "unfinished"
+        status = "done" if result.finished else "cut"
         lines.append(f"{result.name:<{width}}  {result.entry:<16} {reached} {len(result.evaluations):>11} "
                      f"{last:>9}  {status}{note}")
     return "\n".join(lines)
@@ -382,13 +423,14 @@ def write_csv(entries: Sequence[Entry], path: Path, baseline: str = BASELINE) ->
                          "median_cpu_seconds", f"fewer_than_{baseline}",
                          "best_model_free", "fewer_than_best_model_free"])
         reference = baseline_entry(entries, baseline)
+        timed = one_machine([run for entry in entries for run in entry.runs]) is not None
         for level in LEVELS:
             best = best_model_free(entries, level.key)
             for entry in entries:
                 stats = entry.levels[level.key]
+                seconds = ([stats.seconds, *stats.seconds_interval, stats.cpu_seconds] if timed else ["", "", "", ""])
                 writer.writerow([entry.name, entry.model_free, stats.runs, level.key, stats.reached, stats.unfinished,
-                                 stats.steps, *stats.steps_interval, stats.steps_at_least,
-                                 stats.seconds, *stats.seconds_interval, stats.cpu_seconds,
+                                 stats.steps, *stats.steps_interval, stats.steps_at_least, *seconds,
                                  fewer(reference.levels[level.key].steps, stats.steps) if reference else "",
                                  best.name if best else "", fewer(best.levels[level.key].steps, stats.steps)
                                  if best else ""])

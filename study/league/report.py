@@ -54,6 +54,25 @@ DEFAULT_OUT = Path("outputs") / "league"
 RECORDS = Path(__file__).resolve().parent / "records"  # the study's league records
 
 
+def parse_seeds(text: str) -> list[int]:
+    """``0-4,7`` -> [0, 1, 2, 3, 4, 7]."""
+    seeds = []
+    for part in text.split(","):
+        low, _, high = part.partition("-")
+        seeds += list(range(int(low), int(high or low) + 1))
+    return seeds
+
+
+def repeated_seeds(records) -> str:
+    """The entries' seeds that more than one record holds (two roots with the same runs'
+    seeds), named with their records; empty when every entry has each seed once."""
+    seen: dict[tuple, list[str]] = {}
+    for record in records:
+        seen.setdefault((record.entry, record.seed), []).append(record.name)
+    return "; ".join(f"{entry} seed {seed} in {', '.join(names)}" for (entry, seed), names in seen.items()
+                     if len(names) > 1)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("roots", nargs="*", type=Path, default=[RECORDS],
@@ -61,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"where the figure and CSV go ({DEFAULT_OUT})")
     parser.add_argument("--baseline", default=BASELINE, help=f"the entry the others are compared with ({BASELINE})")
     parser.add_argument("--resamples", type=int, default=RESAMPLES, help=f"bootstrap resamples ({RESAMPLES})")
+    parser.add_argument("--entries", type=lambda text: text.split(","), default=None, metavar="A,B,...",
+                        help="only these entries (run names)")
+    parser.add_argument("--seeds", type=parse_seeds, default=None, metavar="N-M,K",
+                        help="only these seeds, e.g. 10-15 (seeds no choice was made on)")
     parser.add_argument("--seed", type=int, default=BOOTSTRAP_SEED, help=f"the bootstrap's seed ({BOOTSTRAP_SEED})")
     args = parser.parse_args(argv)
 
@@ -68,6 +91,14 @@ def main(argv: list[str] | None = None) -> int:
         records, left_out = run_records.load(args.roots)
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 1
+    if args.entries is not None:
+        records = [record for record in records if record.entry in args.entries]
+    if args.seeds is not None:
+        records = [record for record in records if record.seed in args.seeds]
+    twice = repeated_seeds(records)
+    if twice:
+        print(f"error: one set of seeds per entry: {twice}; give the roots of one run per seed", file=sys.stderr)
         return 1
     results = []
     for record in records:

@@ -28,9 +28,10 @@ from unipolicy_rl.training.progress import evaluation_points
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def result_of(path: Path) -> league.RunResult:
-    """A run folder's league result, through its record as the report reads it."""
-    return league.run_result(records.from_run(load_run(path, path.name)))
+def result_of(path: Path, machine: str | None = None) -> league.RunResult:
+    """A run folder's league result, through its record as the report reads it (``machine``: the
+    label of runs whose seconds compare)."""
+    return league.run_result(records.from_run(load_run(path, path.name), machine=machine))
 
 
 # -- hand-made runs ----------------------------------------------------------------------
@@ -127,12 +128,14 @@ def steps_at(result: league.RunResult) -> dict[str, float | None]:
 
 
 def test_a_run_that_crosses_once_and_falls_back_walks_first_and_stays_later(runs):
-    assert steps_at(runs["se-trpo", 0]) == {"first_walk": 4000, "stays_walking": 10_000, "se_trpo_final": 30_000}
+    # (b) is credited at the third walking evaluation in a row (10,000, 12,000, 14,000), when it is confirmed
+    assert steps_at(runs["se-trpo", 0]) == {"first_walk": 4000, "stays_walking": 14_000, "se_trpo_final": 30_000}
     assert runs["se-trpo", 0].levels["first_walk"].seconds == 4.0  # wall time at it: time/elapsed
     assert steps_at(runs["se-moe-trpo", 0]) == {"first_walk": 2000, "stays_walking": None, "se_trpo_final": None}
-    # The per-run table shows each level's real steps and the run's own training seconds there.
+    # The per-run table shows each level's real steps, and the run's own training seconds there where
+    # its record names the machine it ran on.
     row = next(line for line in league.format_runs([runs["se-trpo", 0]]).splitlines() if line.startswith("se-trpo"))
-    assert "4,000 (4 s)" in row and "30,000 (" in row
+    assert "4,000 " in row and "30,000 " in row and " s)" not in row
 
 
 @pytest.mark.parametrize("kind", ["real", "model"])
@@ -150,7 +153,7 @@ def test_wall_times_are_the_seconds_spent_training_without_the_evaluations(tmp_p
 def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tmp_path, kind):
     segments, last = RUNS["se-trpo", "real", 0]
     path = write_run(tmp_path, f"se-{kind}", kind, 0, segments, last, epoch_times=(0.5, 0.25), cpu=1.5)
-    timed = result_of(path)
+    timed = result_of(path, machine="here")
     assert timed.levels["first_walk"].cpu_seconds == 4 * 1.5  # the imagined rows' 1,000 s are not added
     assert timed.levels["se_trpo_final"].cpu_seconds == 30 * 1.5
     row = next(line for line in league.format_runs([timed]).splitlines() if line.startswith("se-"))
@@ -159,7 +162,7 @@ def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tm
     # Resumed from a commit before the column: no sum with its first part missing.
     partial = write_run(tmp_path / "partial", f"se-{kind}", kind, 1, segments, last, epoch_times=(0.5, 0.25),
                         cpu=1.5, cpu_from=3)
-    resumed = result_of(partial)
+    resumed = result_of(partial, machine="here")
     assert math.isnan(resumed.levels["first_walk"].cpu_seconds)
     both = league.make_entries([timed, resumed], resamples=200)[0].levels["first_walk"]
     alone = league.make_entries([timed], resamples=200)[0].levels["first_walk"]
@@ -171,9 +174,9 @@ def test_cpu_seconds_add_up_the_real_epochs_and_a_run_missing_a_part_has_none(tm
     assert "median CPU s" in table
 
 
-def test_three_walking_evaluations_in_a_row_stay_walking_from_the_first_of_them(runs):
-    assert steps_at(runs["se-trpo", 1]) == {"first_walk": 6000, "stays_walking": 6000, "se_trpo_final": 20_000}
-    assert steps_at(runs["se-moe-trpo", 1]) == {"first_walk": 2000, "stays_walking": 2000, "se_trpo_final": 4000}
+def test_three_walking_evaluations_in_a_row_stay_walking_from_the_third_of_them(runs):
+    assert steps_at(runs["se-trpo", 1]) == {"first_walk": 6000, "stays_walking": 10_000, "se_trpo_final": 20_000}
+    assert steps_at(runs["se-moe-trpo", 1]) == {"first_walk": 2000, "stays_walking": 6000, "se_trpo_final": 4000}
 
 
 def test_a_run_short_of_either_threshold_never_walks(runs):
@@ -210,7 +213,7 @@ def test_the_grid_is_read_at_the_first_evaluation_at_or_after_each_milestone(run
 def test_a_run_that_never_reached_a_level_counts_as_longer_than_any_that_did(entries):
     se = entries["se-trpo"].levels
     assert (se["first_walk"].reached, se["first_walk"].runs, se["first_walk"].steps) == (2, 3, 6000)
-    assert se["stays_walking"].steps == 10_000 and se["se_trpo_final"].steps == 30_000  # the larger of the two
+    assert se["stays_walking"].steps == 14_000 and se["se_trpo_final"].steps == 30_000  # the larger of the two
     assert se["first_walk"].seconds == 6.0
     moe = entries["se-moe-trpo"].levels
     assert moe["first_walk"].steps == 2000
@@ -241,8 +244,12 @@ def test_ratios_against_se_trpo_and_the_best_model_free_entry(entries):
         "de-trpo": ("1.5x fewer", "1.0x fewer"),
         "se-moe-trpo": ("3.0x fewer", "2.0x fewer"),
     }
-    assert league.ratio_lines(ordered, "se_trpo_final")["de-trpo"] == ("not reached", "not reached")
-    assert league.ratio_lines(ordered, "stays_walking")["se-moe-trpo"] == ("not reached", "not reached")
+    # cut before their budget without the level (hand-made runs have no final evaluation): censored
+    assert league.ratio_lines(ordered, "se_trpo_final")["de-trpo"] == ("- (cut)", "- (cut)")
+    assert league.ratio_lines(ordered, "stays_walking")["se-moe-trpo"] == ("- (cut)", "- (cut)")
+    done = league.make_entries([dataclasses.replace(run, finished=True) for entry in ordered for run in entry.runs],
+                               resamples=200)
+    assert league.ratio_lines(done, "se_trpo_final")["de-trpo"] == ("not reached", "not reached")
     assert league.fewer(math.inf, 5.0) == math.inf and math.isnan(league.fewer(math.inf, math.inf))
 
 
@@ -259,7 +266,7 @@ def test_the_benchmark_prints_the_table_and_draws_the_figure(sweep, tmp_path, ca
 
 
 def test_compact_records_rebuild_the_same_league_as_the_run_folders(sweep, tmp_path, capsys):
-    assert records.main([str(sweep), str(tmp_path / "records"), "--machine", "here"]) == 0
+    assert records.main([str(sweep), str(tmp_path / "records")]) == 0
     assert f"wrote {len(RUNS)} records" in capsys.readouterr().out
 
     def printed(root: Path) -> list[str]:
@@ -273,9 +280,40 @@ def test_compact_records_rebuild_the_same_league_as_the_run_folders(sweep, tmp_p
     assert repr(kept.evaluations) == repr(original.evaluations)  # NaN where neither logged CPU seconds
     assert len(kept.evaluations) == 52  # every 2,000 to 100,000, then 110,000 and 120,000
     assert (kept.entry, kept.seed, kept.model_free, kept.finished, kept.budget, kept.machine) == (
-        "se-trpo", 0, True, False, 120, "here")
+        "se-trpo", 0, True, False, 120, None)
+    labelled = records.read(records.write(records.from_run(load_run(sweep / name, name), machine="here"),
+                                          tmp_path / "labelled"), name)
+    assert labelled.machine == "here" and repr(labelled.evaluations) == repr(original.evaluations)
     assert sorted(path.name for path in (tmp_path / "records" / name).iterdir()) == [
         "commands.txt", "evaluations.csv", "record.yaml"]
+
+
+def test_seconds_show_only_where_every_run_ran_on_one_machine_and_each_seed_counts_once(sweep, tmp_path, capsys):
+    def wall_of_se_trpo_first_walk(table: str) -> str:
+        lines = table.splitlines()
+        row = lines[lines.index(next(line for line in lines if line.startswith("(a)"))) + 2]
+        return re.search(r"\]\s+(\S+)\s+(\S+)", row).group(1)
+
+    runs = [sweep / f"{entry}_seed{seed}" for entry, _, seed in RUNS]
+    one = [result_of(path, machine="A") for path in runs]
+    assert wall_of_se_trpo_first_walk(league.format_league(league.make_entries(one, resamples=100))) == "6"
+    mixed = [result_of(path, machine="A" if i else "B") for i, path in enumerate(runs)]
+    table = league.format_league(league.make_entries(mixed, resamples=100))
+    assert wall_of_se_trpo_first_walk(table) == "-" and "do not compare" in table
+    unlabelled = [result_of(path) for path in runs]
+    assert wall_of_se_trpo_first_walk(league.format_league(league.make_entries(unlabelled, resamples=100))) == "-"
+
+    for label in ("A", "B"):
+        assert records.main([str(sweep), str(tmp_path / label), "--machine", label]) == 0
+    capsys.readouterr()
+    assert report.main([str(tmp_path / "A"), str(tmp_path / "B"), "--out", str(tmp_path / "out")]) == 1
+    assert "se-trpo seed 0 in A/se-trpo_seed0, B/se-trpo_seed0" in capsys.readouterr().err
+    assert report.main([str(tmp_path / "A"), str(tmp_path / "B"), "--out", str(tmp_path / "out"), "--entries",
+                        "se-trpo", "--seeds", "0-1", "--resamples", "100"]) == 1  # still both roots' seeds 0-1
+    assert report.main([str(tmp_path / "A"), "--out", str(tmp_path / "out"), "--entries", "se-trpo",
+                        "--seeds", "0-1", "--resamples", "100"]) == 0
+    printed = capsys.readouterr().out
+    assert "se-trpo  model-free     2  0, 1 " in printed and "de-trpo" not in printed
 
 
 def load_queue():
@@ -346,27 +384,26 @@ def test_a_run_still_going_is_counted_apart_from_one_that_finished_without_the_l
     done = league.level_stats([dataclasses.replace(run, finished=True) for run in se], "first_walk", resamples=100)
     assert (done.reached, done.unfinished, done.steps) == (2, 0, going.steps)
     table = league.format_league(league.make_entries(se, resamples=100))
-    assert "2/3 (1 unfinished)" in table
-    assert "unfinished" in league.format_runs(se).splitlines()[1]
+    assert "2/3 (1 cut)" in table
+    assert league.format_runs(se).splitlines()[3].endswith("cut")
 
 
 def test_the_median_is_bounded_below_by_what_the_unfinished_runs_can_still_reach(tmp_path):
-    """Three runs still going, each evaluated up to 20,000: one walks from 4,000 on, one has not
-    walked, one walks at its last two evaluations (18,000 and 20,000). (b)'s median is not known
-    yet (two runs have no streak of three), but it is at least 18,000 however they go on: the
-    streak in progress could be completed at 18,000, the other run can walk only after 20,000."""
+    """Three runs cut at 20,000: one walks from 4,000 on, one has not walked, one walks at its last
+    two evaluations (18,000 and 20,000). (b)'s median is not known (two runs have no streak of
+    three): it is not reached by 20,000, the earliest the cut runs could have completed one."""
     segments = {0: [(0, 1.0, 0.0), (4000, 3.5, 1.5)], 1: [(0, 1.0, 0.0)], 2: [(0, 1.0, 0.0), (18_000, 3.5, 1.5)]}
     runs = []
     for seed, walks in segments.items():
         path = write_run(tmp_path, "se-sac", "real", seed, walks, 20_000)
         runs.append(result_of(path))
-    assert [league.earliest_still_possible(run.evaluations, "stays_walking") for run in runs[1:]] == [20_000, 18_000]
+    assert [league.earliest_still_possible(run.evaluations, "stays_walking") for run in runs[1:]] == [20_000, 20_000]
     stays = league.level_stats(runs, "stays_walking", resamples=100)
-    assert (stays.reached, stays.unfinished, stays.steps, stays.steps_at_least) == (1, 2, math.inf, 18_000)
+    assert (stays.reached, stays.unfinished, stays.steps, stays.steps_at_least) == (1, 2, math.inf, 20_000)
     first = league.level_stats(runs, "first_walk", resamples=100)
     assert (first.steps, first.steps_at_least) == (18_000, 18_000)  # known: the runs' own first walks decide it
     table = league.format_league(league.make_entries(runs, resamples=100))
-    assert "not reached [4,000, not reached] (>= 18,000 so far)" in table
+    assert "1/3 (2 cut)  not reached by 20,000 (cut)" in table
     finished = league.level_stats([dataclasses.replace(run, finished=True) for run in runs], "stays_walking",
                                   resamples=100)
     assert (finished.unfinished, finished.steps_at_least) == (0, finished.steps)  # nothing left to go on
