@@ -13,7 +13,9 @@ first walks the grid, (b) walks and stays walking, (c) SE-TRPO's final level), h
 reached it, the median real env steps with a bootstrap 95% interval, the median wall and CPU
 time, and how many times fewer real env steps than SE-TRPO and than the best model-free entry; a
 run that never reached a level counts as longer than any that did. Then (d): the grid mean and
-worst design at 50,000, 100,000 and 300,000 real env steps. Writes ``league.png`` (grid mean and
+worst design at 50,000, 100,000 and 300,000 real env steps. Then whether each entry holds what it
+reached (:mod:`study.league.holding`): (e) the share of later evaluations at or above each level,
+(f) the policy at a fixed budget against SE-TRPO's final median. Writes ``league.png`` (grid mean and
 worst design against real env steps, log axis, one band per entry) and ``league.csv`` (the
 table's numbers) to ``--out``.
 
@@ -37,6 +39,7 @@ if __package__ in (None, ""):
     sys.path[0] = str(Path(__file__).resolve().parents[2])
 
 from study import records as run_records  # noqa: E402
+from study.league.holding import format_holding  # noqa: E402
 from study.league.levels import (  # noqa: E402
     BASELINE,
     BOOTSTRAP_SEED,
@@ -117,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     print(format_runs(results))
     print()
     print(format_league(entries, baseline=args.baseline))
+    print()
+    print(format_holding(entries, baseline=args.baseline))
     figure = plot_league(entries, args.out / "league.png")
     table = write_csv(entries, args.out / "league.csv", baseline=args.baseline)
     print(f"\nwrote {figure} and {table}")

@@ -568,3 +568,34 @@ def test_every_entry_of_the_queue_plans_composes_and_passes_validation(plan):
         for name, entry in entries.items():
             assert isinstance(entry["epochs"], int) and entry["epochs"] > 0, name
             validate_config(compose("config", overrides=[*entry["overrides"], "seed=0", f"epochs={entry['epochs']}"]))
+
+
+def test_the_holding_figures_count_the_evaluations_after_each_level_and_read_the_policy_at_a_budget(runs):
+    from study.league import holding
+
+    se0 = runs["se-trpo", 0]  # walks at 4,000, falls back at 6,000 and 8,000, walks from 10,000; (c) from 30,000
+    after_a, after_b, after_c = (holding.holding([se0], key) for key in ("first_walk", "stays_walking",
+                                                                          "se_trpo_final"))
+    assert (after_a.held, after_a.after) == (48, 50)  # 6,000 ... 120,000: the two falls back do not walk
+    assert (after_b.held, after_b.after, after_c.held, after_c.after) == (45, 45, 37, 37)
+    assert (after_b.lowest.steps, after_b.lowest.grid_min) == (16_000, 1.5)
+    assert holding.holding([runs["se-moe-trpo", 0]], "stays_walking").after == 0  # never reached: nothing after
+
+    def run(entry: str, model_free: bool, seed: int, points) -> league.RunResult:
+        evaluations = [records.Evaluation(steps, 0.0, mean, worst) for steps, mean, worst in points]
+        return league.run_result(records.Record(f"{entry}/seed{seed}", entry, seed, model_free, True, True, None,
+                                                points[-1][0], evaluations=evaluations))
+
+    entries = league.make_entries([
+        run("se-trpo", True, 0, [(590_000, 9.0, 9.0), (600_000, 5.0, 3.0)]),
+        run("se-trpo", True, 1, [(600_000, 6.0, 4.0)]),
+        run("se-moe-trpo", False, 0, [(50_000, 5.6, 3.6), (100_000, 5.4, 3.4)]),
+        run("se-moe-trpo", False, 1, [(50_000, 5.6, 3.0), (98_000, 6.0, 6.0)]),  # cut before 100,000
+    ], resamples=100)
+    assert holding.target(entries) == (5.5, 3.5)  # the medians at 600,000, not the best evaluation
+    moe = next(entry for entry in entries if entry.name == "se-moe-trpo")
+    at50, at100 = (holding.at_budget(moe, steps, (5.5, 3.5)) for steps in holding.budgets(moe))
+    assert (at50.there, at50.at_target, at50.grid_mean, at100.there, at100.at_target) == (2, 1, 5.6, 1, 0)
+    text = holding.format_holding(entries)
+    assert "se-trpo's final median (5.50 m / 3.50 m, at 600,000)" in text
+    assert "se-moe-trpo     50,000  5.60 / 3.30 (2/2)        1/2" in text
