@@ -99,8 +99,12 @@ def parse(path: Path, conf_dir: Path) -> ConfigFile:
         match = _KEY.match(raw)
         if match is None:
             continue
-        if not seen_key and block and match["key"] in _HYDRA_OWN:
-            description, block = block, []
+        if not seen_key and block:
+            # The file's first comment block describes the option; a knob right below it without a
+            # comment of its own is documented by it too.
+            description = block
+            if match["key"] in _HYDRA_OWN:
+                block = []
         seen_key = True
         while stack and stack[-1][0] >= indent:
             stack.pop()
