@@ -80,3 +80,15 @@ def test_the_site_builds_with_every_page_and_image(tmp_path):
     # the configuration reference was generated, the tutorials include their examples
     assert "max_kl" in (site / "configuration/index.html").read_text()
     assert "one_robot" in (site / "tutorials/env_alone/index.html").read_text()
+
+
+def test_the_readme_is_short_and_starts_with_its_two_commands():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 150
+    block = lines[lines.index("```bash") + 1 :][:2]
+    assert block == [
+        "pip install torch==2.13.0 -e . && python train.py",
+        'pip install torch==2.13.0 -e ".[test]" && pytest -q',
+    ]
+    for target in re.findall(r"\]\(((?:docs|examples)/[^)#\s]+)", "\n".join(lines)):
+        assert (ROOT / target).is_file(), f"the README links {target}, which does not exist"
