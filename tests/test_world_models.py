@@ -600,7 +600,7 @@ def test_metrpo_is_refused_for_a_model_whose_members_are_design_cells():
 
 
 def test_device_setting_is_checked_and_auto_falls_back_to_the_cpu():
-    from unipolicy_rl.factories import resolve_device
+    from unipolicy_rl.device import resolve_device
 
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")

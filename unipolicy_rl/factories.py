@@ -8,7 +8,6 @@ in :mod:`unipolicy_rl.envs.config`, so loading a policy needs none of this modul
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import signal
 from collections.abc import Callable
@@ -16,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, RewardSum, TransformedEnv
@@ -32,11 +31,10 @@ from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
 from unipolicy_rl.envs import BatchedWalkerEnv
 from unipolicy_rl.envs.config import env_builder, morphology_env_kwargs
 from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
-from unipolicy_rl.learners import Learner, OffPolicyLearner, OffPolicySettings, TRPOLearner
-from unipolicy_rl.learners.distillation import DistillationLearner, DistillationSettings, SpecialistTeachers
-from unipolicy_rl.learners.off_policy import LOSSES as OFF_POLICY_LOSSES
+from unipolicy_rl.learners import Learner, OffPolicyLearner, TRPOLearner
+from unipolicy_rl.learners.distillation import DistillationLearner, SpecialistTeachers
 from unipolicy_rl.learners.off_policy import check_model_based_imagination
-from unipolicy_rl.objectives import ClippedStep, ClippedSurrogate, TRPOLoss, TRPOUpdater, TrustRegion
+from unipolicy_rl.objectives import ClippedStep, TRPOLoss, TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics
 from unipolicy_rl.policy import (
     TOKEN_POLICIES,
@@ -49,14 +47,18 @@ from unipolicy_rl.policy import (
     make_token_norm,
     policy_architecture,
 )
+from unipolicy_rl.registry import OFF_POLICY_LEARNERS
+from unipolicy_rl.settings import (
+    clipped_surrogate,
+    distillation_settings,
+    make_dynamics_model,
+    make_trust_region,
+    off_policy_settings,
+)
 from unipolicy_rl.token_statistics import TokenObservationStatistics
 from unipolicy_rl.validation import check_settings
-from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout, check_background_fit
-from unipolicy_rl.world_models.token_layout import TOKEN_STATE
+from unipolicy_rl.world_models import Dynamics, check_background_fit
 from unipolicy_rl.world_models.trainer import Trainer
-
-# ``source.kind``: real data only, or a world model fitted to them.
-SOURCE_KINDS = ("real", "model")
 
 
 def training_env(num_robots: int, ignore_signals: bool = False, env_class: type[EnvBase] = BatchedWalkerEnv,
@@ -163,52 +165,6 @@ def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
     return WorldModelParts(model, trainer, buffer, imagination)
 
 
-def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout:
-    """What the world model's state holds (``world_model.model_state``): the vertebrate's
-    ``full`` or ``thesis`` state for its observation, or for ``robot=grammar`` every link's
-    token (``tokens``, padded to the env's ``max_links``)."""
-    if cfg.world_model.model_state == TOKEN_STATE:
-        check_settings(cfg, "robot", "source.kind", "world_model")  # validation's rule: tokens need robot=grammar
-        return TokenLayout(morphology_env_kwargs(cfg)["max_links"])
-    robot = cfg.robot
-    return StateLayout.for_env(instantiate(robot.settings, _convert_="all"), robot.observation, robot.append_design,
-                               cfg.world_model.model_state)
-
-
-def make_dynamics_model(cfg: DictConfig, action_dim: int | None = None,
-                        device: torch.device | str | None = None) -> Dynamics:
-    """The world model's dynamics (``world_model.model``), sized for the robot and observation
-    (:func:`model_layout`; ``action_dim`` by default the robot's: the vertebrate's actuated
-    joints, or a grammar robot's token slots), on ``device`` (default: the config's). ``cfg``
-    has a ``world_model`` (validate_config's check)."""
-    layout = model_layout(cfg)
-    if action_dim is None:
-        action_dim = layout.max_links if isinstance(layout, TokenLayout) else len(cfg.robot.settings.actuated)
-    # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
-    device = resolve_device(cfg.device) if device is None else torch.device(device)
-    with torch.device(device):
-        return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
-
-
-def resolve_device(name: str) -> torch.device:
-    """``device`` of the config: ``cpu``, ``cuda[:N]``, or ``auto`` (a GPU when there is one).
-
-    It places the world model (its fit and its predictions); the policy, the critic and the
-    robots stay on the CPU, where their small networks run fastest next to the physics.
-    """
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        device = None
-    if device is None or device.type not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name!r} but torch sees no CUDA GPU here; use device=cpu or device=auto")
-    return device
-
-
 def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> TRPOLearner:
     """TRPO from ``algo``: actor and critic, the loss (GAE) and its update, the observation normaliser.
     ``algo=ppo`` builds the same learner with PPO's clipped epochs as the policy step
@@ -243,15 +199,6 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
                        algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)
 
 
-def off_policy_settings(cfg: DictConfig) -> OffPolicySettings:
-    """An off-policy learner's settings from ``algo`` (its ``name`` is the loss; the actor's own
-    keys belong to the policy)."""
-    fields = {field.name for field in dataclasses.fields(OffPolicySettings)} - {"loss"}
-    algo = OmegaConf.to_container(cfg.algo, resolve=True)
-    settings = {key: tuple(value) if isinstance(value, list) else value for key, value in algo.items() if key in fields}
-    return OffPolicySettings(loss=cfg.algo.name, **settings)
-
-
 def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> OffPolicyLearner:
     """SAC, CrossQ or REDQ from ``algo``: the tanh-Gaussian actor, TorchRL's loss, critics and replay
     buffer; on a model source, MBPO's (a model buffer beside the real one)."""
@@ -262,22 +209,6 @@ def make_off_policy_learner(cfg: DictConfig, observation_dim: int, action_dim: i
     normalizer = make_observation_norm(observation_dim)
     return OffPolicyLearner(off_policy_settings(cfg), actor, normalizer, make_collecting_policy(normalizer, actor),
                             ObservationStatistics(observation_dim), observation_dim, action_dim, model_based)
-
-
-def clipped_surrogate(cfg: DictConfig) -> ClippedSurrogate:
-    """PPO's policy-step settings from ``algo`` (``conf/algo/ppo.yaml``)."""
-    algo = cfg.algo
-    return ClippedSurrogate(epochs=algo.policy_epochs, minibatch_size=algo.policy_minibatch_size, lr=algo.policy_lr,
-                            clip_epsilon=algo.clip_epsilon, max_grad_norm=algo.max_grad_norm,
-                            target_kl=algo.target_kl)
-
-
-def distillation_settings(cfg: DictConfig) -> DistillationSettings:
-    """Distillation's settings from ``algo`` (``conf/algo/distill.yaml``)."""
-    algo = cfg.algo
-    return DistillationSettings(teachers=tuple(str(path) for path in algo.teachers), learning_rate=algo.learning_rate,
-                                batch_size=algo.batch_size, updates_per_epoch=algo.updates_per_epoch,
-                                buffer_capacity=algo.buffer_capacity, normalizer_refresh=algo.normalizer_refresh)
 
 
 def make_distillation_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> DistillationLearner:
@@ -292,26 +223,18 @@ def make_distillation_learner(cfg: DictConfig, observation_dim: int, action_dim:
                                torch.Generator().manual_seed(cfg.seed))
 
 
-# ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes).
+# ``algo.name`` -> the factory of its learner (each takes the config and the env's sizes); the names
+# are unipolicy_rl.registry's, which validation reads without importing this module.
 LEARNERS: dict[str, Callable[[DictConfig, int, int], Learner]] = {
     "trpo": make_trpo_learner,
     "ppo": make_trpo_learner,
-    **{name: make_off_policy_learner for name in OFF_POLICY_LOSSES},
+    **{name: make_off_policy_learner for name in OFF_POLICY_LEARNERS},
     "distill": make_distillation_learner,
 }
 
 # What a learner must have: the interface's attributes and methods, read off the protocol itself.
 LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Learner).items()
                                                if callable(member) and not name.startswith("_")))
-
-
-def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPolicySettings | DistillationSettings:
-    """The settings of ``algo`` that check themselves, built (what validation runs at start-up)."""
-    if cfg.algo.name == "trpo":
-        return make_trust_region(cfg)
-    if cfg.algo.name == "distill":
-        return distillation_settings(cfg)
-    return clipped_surrogate(cfg) if cfg.algo.name == "ppo" else off_policy_settings(cfg)
 
 
 def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:
@@ -324,14 +247,6 @@ def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Lear
         raise TypeError(f"the learner of algo.name={cfg.algo.name!r} ({type(learner).__name__}) lacks "
                         f"{', '.join(missing)} of the Learner interface (unipolicy_rl.learners.Learner)")
     return learner
-
-
-def make_trust_region(cfg: DictConfig) -> TrustRegion:
-    algo = cfg.algo
-    # (a config from before fisher_fraction computes the Fisher product on the whole batch, as it did)
-    return TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
-                       backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
-                       fisher_fraction=algo.get("fisher_fraction", 1.0))
 
 
 def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:

@@ -34,6 +34,7 @@ from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.objectives.updater import CRITIC_FITS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
 from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, TOKEN_POLICY_ALGOS, token_critic
+from unipolicy_rl.registry import LEARNER_NAMES, SOURCE_KINDS
 
 # The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
 # have their advantages standardised together.
@@ -82,19 +83,6 @@ def _sizes(value) -> str | None:
     return None
 
 
-def _registered(registry: str) -> Callable[[object], str | None]:
-    """A key of ``unipolicy_rl.factories.<registry>``, read when checked (factories imports the
-    whole training stack, and a test may register an entry)."""
-
-    def check(value) -> str | None:
-        from unipolicy_rl import factories
-
-        choices = getattr(factories, registry)
-        return None if value in choices else f"must be one of {sorted(choices)}"
-
-    return check
-
-
 POSITIVE = _integer(1)
 INF = math.inf
 # key -> rule, for the plain values a run reads (dataclass-backed settings check themselves).
@@ -106,8 +94,8 @@ RULES: dict[str, Callable[[object], str | None]] = {
     "collector.backend": _one_of(set(COLLECTOR_BACKENDS)),
     "checkpoint_every": POSITIVE,
     "progress_bar": _flag,
-    "source.kind": _registered("SOURCE_KINDS"),
-    "algo.name": _registered("LEARNERS"),
+    "source.kind": _one_of(set(SOURCE_KINDS)),
+    "algo.name": _one_of(set(LEARNER_NAMES)),
     "algo.actor_hidden": _sizes,
     "algo.critic_hidden": _sizes,
     "algo.activation": _one_of(set(ACTIVATIONS)),
@@ -156,7 +144,7 @@ _ON_POLICY_RULES: dict[str, Callable[[object], str | None]] = {
     "algo.normalizer_refresh": _one_of(set(REFRESH_MODES)),
 }
 # algo.name -> rules of the keys only that learner reads. TRPO's trust region, PPO's clipped step and
-# an off-policy learner's settings are dataclasses that check themselves (factories.learner_settings).
+# an off-policy learner's settings are dataclasses that check themselves (settings.learner_settings).
 ALGO_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
     **{name: _ON_POLICY_RULES for name in ON_POLICY_ALGOS},
     # (distillation's own numbers and teachers: DistillationSettings checks them)
@@ -347,11 +335,12 @@ def validate_config(cfg: DictConfig) -> None:
     algo_keys = ALGO_RULES.get(cfg.algo.name, {})
     robot_keys = ROBOT_RULES.get(robot_kind(cfg), {})
     check_settings(cfg, *RULES, *algo_keys, *robot_keys, *(key for joint in JOINT_RULES for key in joint))
-    # Imported here: factories imports the whole training stack.
+    # Imported here: the settings' builders import the whole training stack.
     from unipolicy_rl.collectors.imagination import check_stopping_rule
+    from unipolicy_rl.device import resolve_device
     from unipolicy_rl.envs import DesignDistribution
-    from unipolicy_rl.factories import learner_settings, make_dynamics_model, resolve_device
     from unipolicy_rl.learners.off_policy import check_model_based_imagination
+    from unipolicy_rl.settings import learner_settings, make_dynamics_model
     from unipolicy_rl.world_models.disagreement import check_members_disagree
 
     evaluation = cfg.evaluation
