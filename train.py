@@ -28,6 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from unipolicy_rl import metric_columns as columns
 from unipolicy_rl.checkpoint import (
     RunCheckpoints,
     check_resumable,
@@ -41,7 +42,6 @@ from unipolicy_rl.factories import make_learner, make_real_collector, make_world
 from unipolicy_rl.learners.initial_policy import policy_to_start_from
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
-from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training.progress import (
     PeriodicEvaluation,
     RunLog,

@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from unipolicy_rl.evaluation.grid import DesignResult
-from unipolicy_rl.training.metrics_file import DISPLACEMENT, EPOCH, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
+from unipolicy_rl.metric_columns import DISPLACEMENT, EPOCH, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
 
 # (attribute of DesignResult, file stem, colour-bar label)
 HEATMAPS = (
