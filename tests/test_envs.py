@@ -15,6 +15,7 @@ from tensordict import TensorDict
 from torchrl.envs import ParallelEnv
 from torchrl.envs.utils import check_env_specs
 
+from unipolicy_rl.cpu_speed.parallel_env import SleepingParallelEnv, WakingDoneFlags
 from unipolicy_rl.envs import (
     ENV_ID,
     BatchedWalkerEnv,
@@ -27,7 +28,6 @@ from unipolicy_rl.envs import (
     walking_reward,
 )
 from unipolicy_rl.envs.gait import SineGait, walk
-from unipolicy_rl.envs.parallel import SleepingParallelEnv, WakingDoneFlags
 
 
 def test_gymnasium_checker_passes():

@@ -2,7 +2,7 @@
 
 import torch
 
-from unipolicy_rl.optimizers import adam
+from unipolicy_rl.cpu_speed.fused_adam import adam
 
 
 def steps_taken(optimizer_of, seed: int = 0) -> list[torch.Tensor]:

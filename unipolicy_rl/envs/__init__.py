@@ -4,10 +4,10 @@ spread batches over cores."""
 
 import gymnasium
 
+from unipolicy_rl.cpu_speed.parallel_env import SleepingParallelEnv
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
 from unipolicy_rl.envs.design import Design, DesignDistribution
 from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
-from unipolicy_rl.envs.parallel import SleepingParallelEnv
 from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
 from unipolicy_rl.envs.walker import WalkerEnv

@@ -6,9 +6,9 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
+from unipolicy_rl.cpu_speed.critic_process import CriticFitProcess
 from unipolicy_rl.objectives.clipped_step import ClippedStep, ClippedStepResult
 from unipolicy_rl.objectives.critic_fit import CriticFitResult, explained_variance, fit_critic, make_critic_optimizer
-from unipolicy_rl.objectives.critic_process import CriticFitProcess
 from unipolicy_rl.objectives.natural_gradient import TRPOStepResult, TrustRegion, natural_gradient_step
 from unipolicy_rl.objectives.trpo import TRPOLoss
 
@@ -43,7 +43,7 @@ class TRPOUpdater:
     ``lagged`` (at the end of the next update, after that update's policy step, so each update's
     advantages come from the critic fitted through the update before last), or ``process`` (the
     same learning as ``lagged``, the fit on a forked process beside the next update:
-    :class:`~unipolicy_rl.objectives.critic_process.CriticFitProcess`). With either of the last
+    :class:`~unipolicy_rl.cpu_speed.critic_process.CriticFitProcess`). With either of the last
     two a fit is pending between updates; :meth:`finish_critic_fit` applies it (before anything
     reads or changes the critic outside an update: a normaliser refresh, a checkpoint), and an
     update reports the metrics of the fit it finished, the one of the batch before.
@@ -81,7 +81,7 @@ class TRPOUpdater:
         self.consecutive_skips = 0
         self.critic_fit = critic_fit
         self._lagged_batch: TensorDictBase | None = None  # critic_fit=lagged: the batch whose fit is pending
-        self.critic_process = (CriticFitProcess(loss_module, self.critic_optimizer, critic_epochs,
+        self.critic_process = (CriticFitProcess(fit_critic, loss_module, self.critic_optimizer, critic_epochs,
                                                 critic_minibatch_size, generator)
                                if critic_fit == "process" else None)
 

@@ -21,7 +21,7 @@ from typing import Protocol
 import torch
 from tensordict import TensorDictBase
 
-from unipolicy_rl.optimizers import adam
+from unipolicy_rl.cpu_speed.fused_adam import adam
 from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
 
 # Keys of a transition batch (one real step each), as the replay buffer stores them.

@@ -9,6 +9,10 @@ by one update (``algo.critic_fit=lagged`` is the same learning in one process; a
 SE-TRPO's final level after as few real env steps as the default on two seeds, docs/results.md).
 A thread cannot do this here: both sides are many small operations whose Python holds the GIL.
 
+The fit itself is the caller's (``fit``: :func:`unipolicy_rl.objectives.critic_fit.fit_critic`), so
+the child runs exactly what ``algo.critic_fit=lagged`` runs in one process (``tests/test_critic_fit.py``
+compares the two); this module only moves it onto a fork.
+
 The child is a fork of the parent at its first fit, so it starts from the parent's critic, its Adam
 optimizer and the fit's generator, and owns them from then on; the parent keeps the critic's weights
 up to date from each finished fit, and pushes them back after it changes them itself (a normaliser
@@ -22,12 +26,11 @@ import multiprocessing
 import signal
 import traceback
 import weakref
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
-
-from unipolicy_rl.objectives.critic_fit import CriticFitResult, fit_critic
-from unipolicy_rl.objectives.trpo import TRPOLoss
+from torchrl.objectives import LossModule
 
 __all__ = ["CriticFitProcess"]
 
@@ -36,23 +39,26 @@ STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
 
 class CriticFitProcess:
-    """:func:`fit_critic` on a forked child process, one fit at a time.
+    """``fit`` (the critic fit) on a forked child process, one fit at a time.
 
     ``start_fit(batch)`` sends a batch (its critic inputs and value targets) and returns at once;
     ``finish()`` waits for that fit, copies the fitted weights into the parent's critic and returns
-    the :class:`CriticFitResult`. ``push_weights()`` sends the parent's critic weights to the child;
+    ``fit``'s result. ``push_weights()`` sends the parent's critic weights to the child;
     ``optimizer_state()`` / ``load_optimizer_state()`` move the Adam state and the generator's once
     the child has started.
 
     Args:
-        loss: the updater's loss (its critic is the one fitted).
+        fit: ``fit(loss, batch, optimizer, epochs, minibatch_size, generator) -> result``, the critic
+            fit run in the child (its result is picklable).
+        loss: the updater's loss (its critic is the one fitted; ``critic_parameters()``).
         optimizer: the critic's Adam optimizer (the child takes it over at the fork).
-        epochs, minibatch_size: as :func:`fit_critic`.
+        epochs, minibatch_size: passed to ``fit``.
         generator: the fit's shuffling generator (the child takes it over at the fork).
     """
 
-    def __init__(self, loss: TRPOLoss, optimizer: torch.optim.Optimizer, epochs: int, minibatch_size: int,
-                 generator: torch.Generator | None) -> None:
+    def __init__(self, fit: Callable, loss: LossModule, optimizer: torch.optim.Optimizer, epochs: int,
+                 minibatch_size: int, generator: torch.Generator | None) -> None:
+        self.fit = fit
         self.loss, self.optimizer, self.generator = loss, optimizer, generator
         self.epochs, self.minibatch_size = epochs, minibatch_size
         self.pending = False
@@ -72,7 +78,7 @@ class CriticFitProcess:
         self._connection.send(("fit", critic_batch))
         self.pending = True
 
-    def finish(self) -> CriticFitResult:
+    def finish(self):
         if not self.pending:
             raise RuntimeError("no critic fit is pending")
         self.pending = False
@@ -108,8 +114,8 @@ class CriticFitProcess:
         parent, child = context.Pipe()
         # daemon: the child ends with the parent, however the parent ends
         self._process = context.Process(target=_serve, daemon=True, name="critic-fit",
-                                        args=(child, self.loss, self.optimizer, self.epochs, self.minibatch_size,
-                                              self.generator))
+                                        args=(child, self.fit, self.loss, self.optimizer, self.epochs,
+                                              self.minibatch_size, self.generator))
         # The child starts with the stop signals blocked, so none reaches it before _serve ignores them.
         unblocked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
         try:
@@ -151,8 +157,8 @@ def _end_child(process: multiprocessing.process.BaseProcess, connection) -> None
     connection.close()
 
 
-def _serve(connection, loss: TRPOLoss, optimizer: torch.optim.Optimizer, epochs: int, minibatch_size: int,
-           generator: torch.Generator | None) -> None:
+def _serve(connection, fit: Callable, loss: LossModule, optimizer: torch.optim.Optimizer, epochs: int,
+           minibatch_size: int, generator: torch.Generator | None) -> None:
     """The child's loop: fits, weight and state exchanges, until ``close``.
 
     Ctrl-C and a scheduler's SIGTERM reach the whole process group; the training process decides
@@ -173,7 +179,7 @@ def _serve(connection, loss: TRPOLoss, optimizer: torch.optim.Optimizer, epochs:
             return
         try:
             if command == "fit":
-                result = fit_critic(loss, payload, optimizer, epochs, minibatch_size, generator)
+                result = fit(loss, payload, optimizer, epochs, minibatch_size, generator)
                 reply = (result, [p.detach().clone() for p in loss.critic_parameters()])
             elif command == "weights":
                 with torch.no_grad():
