@@ -274,7 +274,9 @@ def test_an_mbpo_run_resumes_exactly(tmp_path):
         assert torch.equal(value, b["learner"]["loss"][key]), f"{key} differs after resume"
     for key, value in a["world_model"].items():
         assert torch.equal(value, b["world_model"][key]), f"model {key} differs after resume"
-    refused = run_train(*SAC_TINY, "source=moe", "epochs=1", f"hydra.run.dir={tmp_path / 'bad'}")
+    # (source=moe algo=sac alone selects imagination=mbpo; an on-policy imagination chosen by hand is refused)
+    refused = run_train(*SAC_TINY, "source=moe", "imagination=recent_branch", "epochs=1",
+                        f"hydra.run.dir={tmp_path / 'bad'}")
     assert refused.returncode != 0 and "imagination.train_on_real=false" in refused.stderr
 
 

@@ -146,7 +146,7 @@ GRAMMAR = ["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_si
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["robot=grammar"],
+        (["robot=grammar", "policy=mlp"],
          r"use a token policy \(policy=token_transformer or policy=token_mlp or policy=token_modular\)"),
         (["policy=token_transformer"], "policy=token_transformer reads link tokens, which robot=vertebrate does not "
                                        "write: train it with robot=grammar"),
