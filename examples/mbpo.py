@@ -3,6 +3,7 @@ branches from real states, and TorchRL's ``SACLoss`` trained mostly on the model
 
     python examples/mbpo.py                  # 5 epochs of 10 episodes, 1 gradient step per real step
     python examples/mbpo.py --epochs 2 --robots 4 --episode-length 20
+    python examples/mbpo.py --quick          # 2 epochs of 2 robots x 10 steps: does it run here?
 
 What train.py runs for ``source=moe algo=sac imagination=mbpo``, cut to its algorithm: no
 observation normaliser, checkpoints, logging or evaluation. The world model, its trainer and
@@ -83,5 +84,8 @@ if __name__ == "__main__":
     parser.add_argument("--updates-per-step", type=int, default=1, help="SAC steps per real step (MBPO: 20)")
     parser.add_argument("--real-data-share", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="2 epochs of 2 robots x 10 steps: a check that it runs")
     args = parser.parse_args()
+    if args.quick:
+        args.epochs, args.robots, args.episode_length = 2, 2, 10
     main(args.epochs, args.robots, args.episode_length, args.updates_per_step, args.real_data_share, seed=args.seed)

@@ -3,6 +3,7 @@ it, and TRPO updates on imagined branches until ME-TRPO's rule says stop.
 
     python examples/me_trpo.py                  # 5 epochs of 10 episodes
     python examples/me_trpo.py --epochs 2 --robots 4 --episode-length 20
+    python examples/me_trpo.py --quick          # 2 epochs of 2 robots x 10 steps: does it run here?
 
 What train.py runs for ``source=moe``, cut to its algorithm: no checkpoints, logging or
 evaluation. Each part is the library's own: TorchRL's env and world-model env, our ensemble and
@@ -61,5 +62,8 @@ if __name__ == "__main__":
     parser.add_argument("--robots", type=int, default=10, help="real episodes per epoch")
     parser.add_argument("--episode-length", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="2 epochs of 2 robots x 10 steps: a check that it runs")
     args = parser.parse_args()
+    if args.quick:
+        args.epochs, args.robots, args.episode_length = 2, 2, 10
     main(args.epochs, args.robots, args.episode_length, args.seed)

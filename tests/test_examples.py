@@ -1,15 +1,24 @@
-"""The scripts in examples/ run as a user would copy them (a few tiny epochs each)."""
+"""The scripts in examples/ run as a user would copy them, in their quick mode (``--quick``: 2 tiny epochs)."""
 
 import math
 import runpy
 import sys
 from pathlib import Path
 
+import pytest
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+@pytest.mark.parametrize("script", sorted(path.name for path in EXAMPLES.glob("*.py")))
+def test_every_example_has_a_quick_mode_that_its_test_runs(script):
+    source = (EXAMPLES / script).read_text()
+    assert '"--quick"' in source, f"examples/{script}: add a --quick mode (and a test here that runs it)"
+    assert f'"{script}", "--quick"' in Path(__file__).read_text(), f"examples/{script}: run its --quick mode here"
+
+
 def test_the_me_trpo_example_runs_its_loop(monkeypatch, capsys):
-    monkeypatch.setattr(sys, "argv", ["me_trpo.py", "--epochs", "2", "--robots", "2", "--episode-length", "10"])
+    monkeypatch.setattr(sys, "argv", ["me_trpo.py", "--quick"])
     runpy.run_path(str(EXAMPLES / "me_trpo.py"), run_name="__main__")
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("epoch ")]
     assert [line.split(":")[0] for line in lines] == ["epoch 1", "epoch 2"]
@@ -18,7 +27,7 @@ def test_the_me_trpo_example_runs_its_loop(monkeypatch, capsys):
 
 
 def test_the_mbpo_example_runs_its_loop(monkeypatch, capsys):
-    monkeypatch.setattr(sys, "argv", ["mbpo.py", "--epochs", "2", "--robots", "2", "--episode-length", "10"])
+    monkeypatch.setattr(sys, "argv", ["mbpo.py", "--quick"])
     runpy.run_path(str(EXAMPLES / "mbpo.py"), run_name="__main__")
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("epoch ")]
     assert [line.split(":")[0] for line in lines] == ["epoch 1", "epoch 2"]
