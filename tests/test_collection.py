@@ -88,6 +88,7 @@ def tiny_config(workers: int, *overrides: str):
                                             "robot.episode_length=5", *overrides])
 
 
+@pytest.mark.slow
 def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
     """The collecting policy runs in the workers: after new statistics and a weight update,
     the next batch must have been normalised with them, and hold one epoch of every robot."""
@@ -117,6 +118,7 @@ def test_worker_processes_normalise_with_the_statistics_the_trainer_sends():
         collector.shutdown()
 
 
+@pytest.mark.slow
 def test_ray_workers_collect_reseeded_epochs_with_the_statistics_the_trainer_sends():
     """collector.backend=ray: two Ray actors on a local cluster step the robots. A batch is one
     epoch of every robot, shaped as the worker processes' are; reseeding repeats an epoch exactly

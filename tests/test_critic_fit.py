@@ -102,6 +102,7 @@ def test_a_pending_fit_skipped_outside_an_update_counts_as_a_skipped_update():
     assert one.consecutive_skips == 0
 
 
+@pytest.mark.slow
 def test_a_model_based_run_with_its_critic_fit_on_a_process_resumes_exactly(tmp_path):
     a, b, _ = straight_and_resumed(tmp_path, [*MOE_TINY, "algo.critic_fit=process"], first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3 and a["config"]["algo"]["critic_fit"] == "process"

@@ -75,6 +75,7 @@ def test_each_step_is_labelled_with_its_own_robot_s_specialist_action(teachers):
     assert labels.abs().max() > 0.5 and (labels.abs() <= 1).all()  # large actions, clipped as the env clips
 
 
+@pytest.mark.slow
 def test_the_student_learns_its_teachers_actions_on_states_it_has_not_trained_on(tmp_path):
     # Teachers the student can represent (its own architecture, one network for both robots), so
     # what is tested is the DAgger loop: label, aggregate, regress, on the student's own states.
@@ -148,6 +149,7 @@ def test_a_distillation_that_cannot_run_is_refused_at_start_up(overrides, messag
         validate_config(cfg)
 
 
+@pytest.mark.slow
 def test_a_distillation_run_trains_evaluates_and_resumes_exactly(teachers, tmp_path):
     overrides = [*SPLIT, "policy=token_modular", "algo=distill", f"algo.teachers=[{teachers[0]},{teachers[1]}]",
                  "episodes_per_epoch=2", "robot.episode_length=10", "evaluation.grid=1", "progress_bar=false",

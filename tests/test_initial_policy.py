@@ -66,6 +66,7 @@ def test_a_new_run_acts_as_the_policy_it_starts_from_and_a_refresh_keeps_it_so(t
     torch.testing.assert_close(actions(learner, seed=5)["loc"], expected["loc"], atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.slow
 def test_train_py_starts_from_the_policy_and_trains_on(tmp_path):
     from test_train import TINY, load_policy, run_train
 

@@ -38,6 +38,7 @@ def _rows(run_dir: Path) -> list[dict]:
         return list(csv.DictReader(file))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["se", "moe"])
 def test_the_loop_trains_an_off_policy_learner_that_keeps_its_own_buffer(tmp_path, source):
     model_based = ["source=moe", "imagination.steps_per_batch=20", "imagination.horizon.start=2",
@@ -59,6 +60,7 @@ def test_the_loop_trains_an_off_policy_learner_that_keeps_its_own_buffer(tmp_pat
     assert load_policy(tmp_path / "checkpoint.pt").act(torch.zeros(18).numpy()).shape == (4,)
 
 
+@pytest.mark.slow
 def test_an_off_policy_learner_resumes_with_its_buffer_exactly(tmp_path):
     straight = run_train_with(WITH_REPLAY_LEARNER, *TINY, "epochs=3", f"hydra.run.dir={tmp_path / 'straight'}")
     first = run_train_with(WITH_REPLAY_LEARNER, *TINY, "epochs=2", f"hydra.run.dir={tmp_path / 'first'}")

@@ -250,6 +250,7 @@ SAC_TINY = ["algo=sac", "episodes_per_epoch=2", "robot.episode_length=10", "eval
             "algo.learning_starts=10", "algo.buffer_capacity=1000", "algo.updates_per_step=2"]
 
 
+@pytest.mark.slow
 def test_a_sac_run_resumes_exactly_and_refuses_bad_settings_at_start_up(tmp_path):
     straight, resumed, _ = straight_and_resumed(tmp_path, SAC_TINY, first=2, total=3)
     a, b = straight["learner"], resumed["learner"]
@@ -266,6 +267,7 @@ MBPO_TINY = [*SAC_TINY, "source=moe", "imagination=mbpo", "imagination.steps_per
              "world_model.trainer.max_epochs=2", "algo.model_buffer_capacity=500"]
 
 
+@pytest.mark.slow
 def test_an_mbpo_run_resumes_exactly(tmp_path):
     straight, resumed, _ = straight_and_resumed(tmp_path, MBPO_TINY, first=2, total=3)
     a, b = straight, resumed
@@ -280,6 +282,7 @@ def test_an_mbpo_run_resumes_exactly(tmp_path):
     assert refused.returncode != 0 and "imagination.train_on_real=false" in refused.stderr
 
 
+@pytest.mark.slow
 def test_mbpo_runs_on_the_polynomial_chaos_world_model_too(tmp_path):
     run = run_train(*SAC_TINY, "source=pce", "imagination=mbpo", "imagination.steps_per_batch=60", "epochs=2",
                     f"hydra.run.dir={tmp_path}")

@@ -428,6 +428,7 @@ PCE_TINY = ["source=pce", "workers=1", "epochs=2", "evaluation.every_steps=1", "
             "imagination.stopping.check_horizon=3"]
 
 
+@pytest.mark.slow
 def test_train_with_the_pce_source_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 
@@ -579,6 +580,7 @@ def test_a_singular_element_is_solved_by_rank_revealing_least_squares_and_counte
     torch.testing.assert_close(c[0, 1], c[0, 2])  # the minimum-norm one splits the repeated term evenly
 
 
+@pytest.mark.slow
 def test_train_with_the_thesis_pce_world_model_runs_end_to_end(tmp_path):
     from test_train import TINY, run_train
 

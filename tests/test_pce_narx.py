@@ -179,6 +179,7 @@ def test_bad_lags_are_refused_by_name(model_class, bad):
         model_class(TOY, action_dim=2, lags=bad)
 
 
+@pytest.mark.slow
 def test_train_with_a_lagged_pce_and_the_disagreement_cut_runs_end_to_end(tmp_path):
     from test_pce import PCE_TINY
     from test_train import TINY, run_train

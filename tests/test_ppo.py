@@ -104,6 +104,7 @@ def test_bad_clipped_step_settings_raise_naming_the_value(setting, value):
         ClippedSurrogate(**{setting: value})
 
 
+@pytest.mark.slow
 def test_a_ppo_run_trains_and_resumes_exactly_and_bad_settings_are_named(tmp_path):
     ppo = [*TINY, "algo=ppo", "algo.policy_epochs=2", "algo.policy_minibatch_size=8"]
     a, b, _ = straight_and_resumed(tmp_path, ppo, first=2, total=3)

@@ -60,6 +60,7 @@ def report(sweeps, tmp_path_factory):
     return build_report(list(sweeps), tmp_path_factory.mktemp("report") / "out")
 
 
+@pytest.mark.slow
 def test_report_has_every_figure_and_the_table(report):
     assert set(report.figures) == FIGURES
     text = report.markdown.read_text()
@@ -83,6 +84,7 @@ def test_report_has_every_figure_and_the_table(report):
     assert "l in [0.1375, 0.2125] m, rho in [0.350, 0.650] kg/m" in text
 
 
+@pytest.mark.slow
 def test_a_second_report_reuses_the_cached_evaluations(report, sweeps, monkeypatch):
     def no_evaluation(*args, **kwargs):
         raise AssertionError("evaluated again although the checkpoint did not change")
@@ -92,6 +94,7 @@ def test_a_second_report_reuses_the_cached_evaluations(report, sweeps, monkeypat
     assert set(again.figures) == FIGURES
 
 
+@pytest.mark.slow
 def test_lost_jobs_are_reported_and_the_rest_still_is(report, sweeps, tmp_path):
     sweep = Path(shutil.copytree(sweeps[0], tmp_path / "sweep"))
     shutil.copytree(report.markdown.parent / "generalisation", tmp_path / "out" / "generalisation")
@@ -117,6 +120,7 @@ def test_lost_jobs_are_reported_and_the_rest_still_is(report, sweeps, tmp_path):
     assert "de-trpo_seed1: no checkpoint.pt" in text
 
 
+@pytest.mark.slow
 def test_runs_of_different_robots_are_refused(sweeps, tmp_path, capsys):
     mixed = tmp_path / "mixed"
     for name in ("de-trpo_seed0", "se-trpo_seed0"):
@@ -132,6 +136,7 @@ def test_runs_of_different_robots_are_refused(sweeps, tmp_path, capsys):
     assert len(error) == 1 and str(mixed) in error[0] and "se-trpo_seed0" in error[0]
 
 
+@pytest.mark.slow
 def test_unreadable_files_are_named_and_the_rest_reported(sweeps, tmp_path):
     sweep = Path(shutil.copytree(sweeps[0], tmp_path / "sweep"))
     (sweep / "se-trpo_seed0" / "metrics.csv").write_bytes(b"\xff\xfe\x00garbage")

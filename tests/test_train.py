@@ -104,6 +104,7 @@ def straight_and_resumed(tmp_path: Path, overrides: list[str], first: int, total
                               load_checkpoint(tmp_path / "resumed" / "checkpoint.pt"), straight.stdout)
 
 
+@pytest.mark.slow
 def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
     a, b, _ = straight_and_resumed(tmp_path, TINY, first=2, total=4)
     assert a["epoch"] == b["epoch"] == 4
@@ -126,6 +127,7 @@ GRAMMAR_TINY = [*TINY, "robot=grammar", "policy=token_transformer", "robot.split
                 "evaluation.every_steps=1", "evaluation.morphology_grid=1", "algo.fisher_fraction=0.5"]
 
 
+@pytest.mark.slow
 def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_path):
     from unipolicy_rl.envs import MorphologyWalkerEnv
     from unipolicy_rl.envs.tokens import TOKENS
@@ -170,6 +172,7 @@ def test_a_grammar_run_trains_evaluates_per_morphology_and_resumes_exactly(tmp_p
     assert summary["morphologies"] == 2 and summary["designs"] == 2
 
 
+@pytest.mark.slow
 def test_a_modular_policy_trains_on_the_gait_clock_and_its_checkpoint_drives_a_clocked_env(tmp_path):
     from unipolicy_rl.envs.tokens import CLOCK
 
@@ -188,6 +191,7 @@ def test_a_modular_policy_trains_on_the_gait_clock_and_its_checkpoint_drives_a_c
     assert (first["loc"] - moved["loc"])[real].abs().max() > 0  # the trained policy reads the phase
 
 
+@pytest.mark.slow
 def test_a_grammar_run_collects_on_ray_actors(tmp_path):
     """collector.backend=ray with robots of several morphologies: the actors step the padded
     token env, and the run trains an epoch on what they send and checkpoints it."""
@@ -200,6 +204,7 @@ def test_a_grammar_run_collects_on_ray_actors(tmp_path):
     assert load_checkpoint(tmp_path / "checkpoint.pt")["epoch"] == 1
 
 
+@pytest.mark.slow
 def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
     result = run_train(*TINY, "source=de", "workers=1", "epochs=1", "evaluation.grid=2", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
@@ -209,6 +214,7 @@ def test_a_de_run_is_evaluated_over_the_se_grid(tmp_path):
     assert designs == {(0.15, 0.4), (0.15, 0.6), (0.2, 0.4), (0.2, 0.6)}  # not just DE's (0.175, 0.5)
 
 
+@pytest.mark.slow
 def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
     run_dir = tmp_path / "killed"
     process = subprocess.Popen([sys.executable, str(ROOT / "train.py"), *TINY, "epochs=100000",
@@ -228,6 +234,7 @@ def test_sigterm_saves_the_finished_epochs_and_exits_cleanly(tmp_path):
     assert load_checkpoint(run_dir / "checkpoint.pt")["epoch"] == finished >= 2
 
 
+@pytest.mark.slow
 def test_the_best_periodic_evaluation_keeps_its_policy_apart_from_the_run(tmp_path):
     from unipolicy_rl.evaluation import evaluate_on_designs, grid_score, summarise
 
@@ -295,6 +302,7 @@ def test_a_file_that_is_not_our_checkpoint_is_one_clear_error(tmp_path, content,
     assert "bad.pt" in str(error.value)
 
 
+@pytest.mark.slow
 def test_a_resume_takes_the_checkpoints_network_and_refuses_a_conflicting_override(tmp_path):
     first = run_train(*TINY, "epochs=1", "workers=1", "algo.actor_hidden=[16]", f"hydra.run.dir={tmp_path / 'a'}")
     assert first.returncode == 0, first.stderr
@@ -364,6 +372,7 @@ MOE_TINY = [*TINY, "source=moe", "workers=1", "evaluation.every_steps=1", "imagi
             "imagination.stopping.check_starts=4", "imagination.stopping.check_horizon=3"]
 
 
+@pytest.mark.slow
 def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp_path):
     a, b, _ = straight_and_resumed(tmp_path, MOE_TINY, first=1, total=3)
     assert a["epoch"] == b["epoch"] == 3
@@ -387,6 +396,7 @@ def test_a_model_based_run_resumes_exactly_and_logs_where_its_data_came_from(tmp
     assert (tmp_path / "straight" / "logs" / "se-moe-trpo_seed0").is_dir()
 
 
+@pytest.mark.slow
 def test_a_model_fitted_every_second_epoch_still_trains_the_policy_on_imagined_data_every_epoch(tmp_path):
     result = run_train(*MOE_TINY, "epochs=3", "imagination.fit_every=2", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr
@@ -410,6 +420,7 @@ def _learning(rows: list[dict[str, str]], epoch: str) -> list[dict[str, str]]:
             for row in rows if row["imagined"] == "1.0" and row["epoch"] == epoch]
 
 
+@pytest.mark.slow
 def test_a_fit_in_the_background_trains_the_policy_on_the_previous_fit_and_resumes_exactly(tmp_path):
     """imagination.background_fit: epoch 2's updates run on epoch 1's model while epoch 2's fit runs
     beside them, so they repeat a run that fits every second epoch; epoch 3's use epoch 2's fit."""
@@ -433,6 +444,7 @@ def test_a_fit_in_the_background_trains_the_policy_on_the_previous_fit_and_resum
                                load_checkpoint(tmp_path / "d" / "checkpoint.pt"), world_model=True)
 
 
+@pytest.mark.slow
 def test_the_real_rule_keeps_only_the_imagined_updates_the_real_batch_agrees_with(tmp_path):
     result = run_train(*MOE_TINY, "epochs=2", "imagination.stopping.kind=real", "imagination.train_on_real=true",
                        "algo.critic_fit=inline", "imagination.stopping.check_every=1", f"hydra.run.dir={tmp_path}")
@@ -458,6 +470,7 @@ GRAMMAR_MOE_TINY = [*TINY, "robot=grammar", "policy=token_mlp", "source=moe", "r
                     "imagination.stopping.check_starts=4", "imagination.stopping.check_horizon=3"]
 
 
+@pytest.mark.slow
 def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly(tmp_path):
     a, b, output = straight_and_resumed(tmp_path, GRAMMAR_MOE_TINY, first=1, total=2)
     assert a["epoch"] == b["epoch"] == 2
@@ -509,6 +522,7 @@ def test_the_run_is_named_for_the_design_world_model_and_algorithm_that_ran():
     assert list(named.values()) == ["se-trpo", "se-pce-trpo", "de-pce-trpo"]
 
 
+@pytest.mark.slow
 def test_a_run_whose_updates_keep_being_skipped_stops_with_its_checkpoint(tmp_path):
     result = run_train_with(POISON_REWARDS, *TINY, "epochs=50", "checkpoint_every=1", "algo.max_consecutive_skips=3",
                             f"hydra.run.dir={tmp_path}")
@@ -522,6 +536,7 @@ def test_a_run_whose_updates_keep_being_skipped_stops_with_its_checkpoint(tmp_pa
     assert skips == [1.0, 2.0]
 
 
+@pytest.mark.slow
 def test_a_failure_inside_the_loop_shuts_the_worker_processes_down_instead_of_hanging(tmp_path):
     """Worker processes of a MultiSyncCollector keep the interpreter alive on exit unless shut down."""
     fail = ("from unipolicy_rl.objectives.updater import TRPOUpdater\n"
