@@ -495,16 +495,28 @@ def test_a_model_based_grammar_run_trains_on_imagined_tokens_and_resumes_exactly
         ("imagination.stopping.min_improving_fraction=0", "min_improving_fraction must lie in"),
         ("imagination.fit_every=0", "fit_every must be a positive integer, got 0"),
         ("imagination.background_fit=maybe", "background_fit must be true or false, got 'maybe'"),
-        ("imagination.background_fit=true", "set world_model.trainer.num_threads=null (got 2)"),  # the default's 2
         ("imagination.stopping.kind=real", "stopping.kind=real checks the imagined updates against the epoch's "
                                            "real batch"),
         ("imagination.stopping.tolerance=1", "stopping.tolerance=1 applies to stopping.kind=real only"),
     ],
 )
-def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path, override, match):
-    result = run_train(*MOE_TINY, "epochs=1", *override.split(), f"hydra.run.dir={tmp_path}")
+def test_bad_model_settings_are_refused_by_the_start_up_validation(override, match):
+    # (in this process: train.py composes the same config and validates it first, as the run below shows)
+    from hydra import compose, initialize_config_dir
+
+    from unipolicy_rl.validation import validate_config
+
+    with pytest.raises(Exception) as refused:  # Hydra's composition error or validation's ValueError
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            validate_config(compose("config", overrides=[*MOE_TINY, "epochs=1", *override.split()]))
+    assert match in str(refused.value)
+
+
+def test_bad_model_settings_stop_the_run_before_it_trains(tmp_path):
+    # A background fit with the default's 2 fit threads: refused when the world model is built, before any epoch.
+    result = run_train(*MOE_TINY, "epochs=1", "imagination.background_fit=true", f"hydra.run.dir={tmp_path}")
     assert result.returncode != 0
-    assert match in result.stderr
+    assert "set world_model.trainer.num_threads=null (got 2)" in result.stderr
     assert not (tmp_path / "metrics.csv").exists()
 
 
