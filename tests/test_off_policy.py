@@ -96,6 +96,7 @@ def test_crossq_critics_renormalise_after_the_configured_warm_up():
     assert (params.get(key) == 123).all()
 
 
+@pytest.mark.slow
 def test_the_temperature_holds_the_policys_entropy_at_its_target():
     """One action, a reward peaked at 0.5: the actor would narrow without end, the learned
     temperature stops it where the entropy meets the target (``auto``: -1 for one action)."""
