@@ -17,6 +17,7 @@ stopping rule says stop -> evaluation -> checkpoint. Ends with the saved policy 
 
 from __future__ import annotations
 
+import sys
 import time
 from contextlib import closing
 from functools import partial
@@ -29,17 +30,12 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl import metric_columns as columns
-from unipolicy_rl.checkpoint import (
-    RunCheckpoints,
-    check_resumable,
-    load_checkpoint,
-    restore_training_state,
-    settings_for_resume,
-)
+from unipolicy_rl.checkpoint import RunCheckpoints, check_resumable, load_checkpoint, restore_training_state
 from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
 from unipolicy_rl.learners.initial_policy import policy_to_start_from
+from unipolicy_rl.resume import named_keys, record_resumed_config, settings_for_resume, with_the_runs_groups
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
 from unipolicy_rl.training.progress import (
@@ -53,14 +49,19 @@ from unipolicy_rl.validation import validate_config
 from unipolicy_rl.world_models import PendingFit
 from unipolicy_rl.world_models.fresh_error import fresh_error
 
+CONFIG_DIR = Path(__file__).resolve().parent / "conf"
+
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> dict:
+    hydra_config = HydraConfig.get()
+    choices = {group: choice for group, choice in hydra_config.runtime.choices.items()
+               if not group.startswith("hydra/")}
     state = load_checkpoint(cfg.resume) if cfg.resume else None
-    if state is not None:
+    if state is not None:  # the run's own settings, but for those this command line names
         check_resumable(state, cfg.resume)
-        overridden = [item.split("=", 1)[0].lstrip("+~") for item in HydraConfig.get().overrides.task]
-        cfg = settings_for_resume(cfg, state, overridden, cfg.resume)
+        cfg = settings_for_resume(cfg, state, named_keys(hydra_config.overrides.task, choices), choices, cfg.resume)
+        record_resumed_config(cfg, Path(hydra_config.runtime.output_dir), hydra_config.output_subdir)
     validate_config(cfg)  # every setting, before any robot is built or any time is spent
     torch.set_num_threads(1)  # PyBullet robots and small networks: threads only contend on 2 cores
     torch.manual_seed(cfg.seed)  # network initialisation
@@ -82,7 +83,7 @@ def main(cfg: DictConfig) -> dict:
             restore_training_state(state, learner=learner, collector=real, world=world)
             real.update_policy_weights_()
             print(f"resumed from {cfg.resume} at epoch {state['epoch']}")
-        checkpoints = RunCheckpoints(run_dir, config=OmegaConf.to_container(cfg, resolve=True),
+        checkpoints = RunCheckpoints(run_dir, config=OmegaConf.to_container(cfg, resolve=True), choices=choices,
                                      observation_dim=observation_dim, action_dim=action_dim, learner=learner,
                                      collector=real, world=world,
                                      elapsed_before=state.get("elapsed", 0.0) if state else 0.0)
@@ -159,4 +160,5 @@ def main(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
+    sys.argv = with_the_runs_groups(sys.argv, CONFIG_DIR)  # resume=<checkpoint>: composed from the run's groups
     main()

@@ -577,14 +577,14 @@ def test_a_bad_critic_is_refused_by_name_by_the_factory(policy, overrides, messa
 def test_a_token_policy_saved_before_the_critic_setting_resumes_with_the_critic_it_had():
     from omegaconf import OmegaConf
 
-    from unipolicy_rl.checkpoint import settings_for_resume
+    from unipolicy_rl.resume import settings_for_resume
 
     for policy, critic in (("token_transformer", "transformer"), ("token_mlp", "padded_mlp")):
         today = policy_config(policy, "robot=grammar", "policy.critic=pooled")
         saved = OmegaConf.to_container(today, resolve=False)
         del saved["policy"]["critic"]  # the config as a run saved it before policy.critic existed
         saved["policy"].pop("critic_network", None)
-        resumed = settings_for_resume(today, {"config": saved}, overridden=[], path="old.pt")
+        resumed = settings_for_resume(today, {"config": saved}, named=[], choices={}, path="old.pt")
         assert resumed.policy.critic == critic
         _, built = make_token_actor_critic(resumed, F, 7)
         _, expected = make_token_actor_critic(policy_config(policy, f"policy.critic={critic}"), F, 7)

@@ -336,14 +336,15 @@ def saved_run_config(*overrides: str) -> dict:
 
 
 def test_a_resume_continues_with_the_runs_own_settings_and_this_command_lines(capsys):
-    from unipolicy_rl.checkpoint import settings_for_resume
+    """A checkpoint without group choices (format 3): the run's settings, one by one."""
+    from unipolicy_rl.resume import settings_for_resume
 
     saved = saved_run_config("source=moe", "seed=3", "imagination.fit_every=2", "algo.max_kl=0.02",
                              "logger=tensorboard")
     saved["a_setting_since_removed"] = 1
     saved["an_object_since_removed"] = {"_target_": "old.Thing", "size": 2}
     here = composed("source=moe", "epochs=200")
-    resumed = settings_for_resume(here, {"config": saved}, overridden=["source", "epochs"], path="run.pt")
+    resumed = settings_for_resume(here, {"config": saved}, named=["epochs"], choices={}, path="run.pt")
     # What the command line did not name is the run's, not this configuration's default ...
     assert (resumed.seed, resumed.imagination.fit_every, resumed.algo.max_kl) == (3, 2, 0.02)
     # ... an object built from another class is the run's whole, not mixed with the default's ...
@@ -354,13 +355,14 @@ def test_a_resume_continues_with_the_runs_own_settings_and_this_command_lines(ca
     # ... and what it named is this run's.
     assert resumed.epochs == 200
     out = capsys.readouterr().out
-    assert "seed=3" in out and "imagination.fit_every=2" in out and "logger (a " in out and "epochs" not in out
+    assert "resume: epochs: 100 -> 200" in out and "logger: the checkpoint's, whole (a " in out
+    assert "seed" not in out and "fit_every" not in out  # the run's own settings, not changes
     assert ("a_setting_since_removed, an_object_since_removed._target_, an_object_since_removed.size are not "
-            "settings of this configuration") in out
+            "settings of this version") in out
     assert "a_setting_since_removed" not in resumed and "an_object_since_removed" not in resumed
     # Nothing differs, nothing is said.
     settings_for_resume(composed("source=moe", "seed=3"), {"config": saved_run_config("source=moe", "seed=3")},
-                        overridden=["source", "seed"], path="run.pt")
+                        named=["seed"], choices={}, path="run.pt")
     assert capsys.readouterr().out == ""
 
 
@@ -561,7 +563,7 @@ def test_a_failure_inside_the_loop_shuts_the_worker_processes_down_instead_of_ha
 
 def test_checkpoints_of_the_earlier_layouts_load_in_the_current_one(tmp_path):
     """Format 2 kept the policy and learner parts at the top and a model-based run's model and buffer
-    inside the collector's state; format 1 had only the epoch. Both read as format 3."""
+    inside the collector's state; format 1 had only the epoch. Both read in the current format."""
     weights = {"actor": {"w": torch.ones(2)}, "critic": {"v": torch.zeros(1)}, "observation_statistics": {},
                "critic_optimizer": {}, "critic_generator": torch.zeros(1), "observation_loc": torch.zeros(18),
                "observation_scale": torch.ones(18)}
@@ -571,7 +573,7 @@ def test_checkpoints_of_the_earlier_layouts_load_in_the_current_one(tmp_path):
                                  "buffer": {"b": 1}, "model_fitted_for": 3, "imagined_updates": 40}}
     torch.save(model_based, tmp_path / "model_based.pt")
     state = load_checkpoint(tmp_path / "model_based.pt")
-    assert state["format"] == 3 and state["collector"] == {"epoch": 4, "real_env_steps": 4000}
+    assert state["format"] == 4 and state["collector"] == {"epoch": 4, "real_env_steps": 4000}
     assert torch.equal(state["world_model"]["m"], torch.ones(3)) and state["replay_buffer"] == {"b": 1}
     assert state["model_phase_skipped"]  # written before epoch 4's model fit
     assert torch.equal(state["policy"]["actor"]["w"], state["learner"]["actor"]["w"])

@@ -6,7 +6,7 @@ world model and replay buffer; the best periodic evaluation so far) and its reso
 ``load_policy(path)`` can rebuild the policy without any other file. Its layout is defined here
 and nowhere else: :func:`training_state` writes it (with ``resumable=False``, the policy
 alone), :func:`restore_training_state` reads it back, and older formats are read through
-:func:`_upgraded`.
+:func:`migrate`, the one place that knows them.
 
 This module imports no collector, world model or learner: loading a policy to run or evaluate
 it needs only :mod:`unipolicy_rl.policy` and the env.
@@ -17,13 +17,12 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -37,7 +36,6 @@ from unipolicy_rl.policy import (
     make_policy_actor,
     make_token_actor,
     make_token_norm,
-    pin_token_critic,
     policy_architecture,
 )
 
@@ -61,8 +59,9 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
 
 
 # 1: weights, statistics, critic optimiser and epoch; 2: adds the collector's state; 3: the policy,
-# the learner, the collector and the world model each under their own key.
-CHECKPOINT_FORMAT = 3
+# the learner, the collector and the world model each under their own key; 4: adds the run's Hydra
+# group choices (``choices``), so a resume composes the run's own config from the checkpoint alone.
+CHECKPOINT_FORMAT = 4
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -79,11 +78,12 @@ def load_checkpoint(path: str | Path) -> dict:
     if state.get("format", 1) > CHECKPOINT_FORMAT:
         raise ValueError(f"{str(path)!r} has checkpoint format {state['format']}, newer than this version's "
                          f"{CHECKPOINT_FORMAT}: update unipolicy_rl to read it")
-    return _upgraded(state)
+    return migrate(state)
 
 
 def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim: int, action_dim: int, learner,
-                   collector, world=None, best_evaluation: dict | None = None, resumable: bool = True) -> dict:
+                   collector, world=None, best_evaluation: dict | None = None, resumable: bool = True,
+                   choices: dict | None = None) -> dict:
     """Everything a run continues from, after ``epoch`` real epochs and ``elapsed`` wall seconds.
 
     ``observation_dim`` and ``action_dim`` are the policy's sizes: for a token policy the
@@ -94,12 +94,14 @@ def training_state(*, epoch: int, elapsed: float, config: dict, observation_dim:
     ``world`` a model-based run's :class:`~unipolicy_rl.factories.WorldModelParts` (or None), and
     ``best_evaluation`` the best periodic grid evaluation so far (epoch, grid mean and worst).
     ``resumable=False`` writes the policy alone, marked so a resume from it is refused, without
-    asking the learner, collector or world model for their state."""
+    asking the learner, collector or world model for their state. ``choices`` are the run's Hydra
+    group choices (``{"algo": "ppo", "source": "moe", ...}``), which a resume composes its config from."""
     state = {
         "format": CHECKPOINT_FORMAT,
         "epoch": epoch,
         "elapsed": elapsed,
         "config": config,
+        "choices": dict(choices or {}),
         "observation_dim": observation_dim,
         "action_dim": action_dim,
         "policy": learner.policy_state(),
@@ -151,16 +153,17 @@ class RunCheckpoints:
     Args:
         run_dir: the run folder.
         config: the run's resolved config (a plain dict).
+        choices: the run's Hydra group choices.
         observation_dim, action_dim: the env's sizes.
         learner, collector, world: the run's parts (``world`` None for a real source).
         elapsed_before: wall seconds of the run before this process (a resumed run's).
     """
 
     def __init__(self, run_dir: Path, *, config: dict, observation_dim: int, action_dim: int, learner, collector,
-                 world=None, elapsed_before: float = 0.0) -> None:
+                 world=None, elapsed_before: float = 0.0, choices: dict | None = None) -> None:
         self.path, self.best_path = run_dir / "checkpoint.pt", run_dir / "best.pt"
-        self.parts = {"config": config, "observation_dim": observation_dim, "action_dim": action_dim,
-                      "learner": learner, "collector": collector, "world": world}
+        self.parts = {"config": config, "choices": choices, "observation_dim": observation_dim,
+                      "action_dim": action_dim, "learner": learner, "collector": collector, "world": world}
         self.elapsed_before = elapsed_before
         self.started = time.perf_counter()
 
@@ -178,16 +181,24 @@ class RunCheckpoints:
         return save_checkpoint(self.best_path, self.state(best_evaluation, resumable=False))
 
 
-def _upgraded(state: dict) -> dict:
-    """A format 1 or 2 checkpoint in the current layout (format 2 kept the policy's and the
+def migrate(state: dict) -> dict:
+    """A checkpoint of any earlier format in the current layout, one format at a time: the one
+    place that knows the old layouts."""
+    state = dict(state)
+    if state.get("format", 1) < 3:
+        state = _format_3(state)
+    if state["format"] < 4:
+        state = {**state, "format": 4, "choices": _choices_of(state["config"])}
+    return state
+
+
+def _format_3(old: dict) -> dict:
+    """A format 1 or 2 checkpoint in format 3's layout (format 2 kept the policy's and the
     learner's parts at the top and a model-based collector's model and buffer inside its state;
     format 1 had no collector state, only the epoch)."""
-    if state.get("format", 1) >= 3:
-        return state
-    old = dict(state)
     state = {key: old[key] for key in ("epoch", "elapsed", "config", "observation_dim", "action_dim", "resumable",
                                        "best_evaluation") if key in old}
-    state["format"] = CHECKPOINT_FORMAT
+    state["format"] = 3
     state["policy"] = {key: old[key] for key in ("actor", "observation_loc", "observation_scale") if key in old}
     if not old.get("resumable", True):  # a policy alone (best.pt)
         return state
@@ -206,133 +217,15 @@ def _upgraded(state: dict) -> dict:
     return state
 
 
-# The settings a checkpoint's weights and model were built for: a resume takes them from the
-# checkpoint, whole, and refuses a command line that sets them otherwise. (A dotted key names one
-# setting; a bare group name covers the group.)
-ARCHITECTURE_KEYS = ("algo.name", "algo.actor_hidden", "algo.critic_hidden", "algo.activation", "policy", "robot",
-                     "world_model.model", "world_model.model_state")
-# Settings a resume never takes from the checkpoint: where this run resumes from.
-NOT_RESUMED = ("resume",)
-_ABSENT = object()
-
-
-def settings_for_resume(cfg: DictConfig, state: dict, overridden: Sequence[str], path: str | Path) -> DictConfig:
-    """``cfg`` with the settings of the run that saved ``state``, except those set on this command line.
-
-    A resume continues a run: every setting the command line does not name is the run's own
-    (``imagination.fit_every``, ``seed``, ``epochs``, ...), not this configuration's default,
-    and the resume prints the ones it took that differ. The networks, robot and world model
-    (:data:`ARCHITECTURE_KEYS`) are taken whole, since weights only load into the networks they
-    were trained in: a command line that sets them to something else is refused, naming the
-    keys, rather than failing in ``load_state_dict``. Any other setting the command line names
-    is this run's (``epochs=200`` extends it); an interpolated setting follows the one it names.
-    """
-    saved = OmegaConf.create(state["config"])
-    pin_token_critic(saved)  # a token policy saved before policy.critic existed keeps its critic
-    kind, saved_kind = OmegaConf.select(cfg, "source.kind"), OmegaConf.select(saved, "source.kind")
-    if saved_kind is not None and kind != saved_kind:
-        raise ValueError(f"cannot resume {str(path)!r}: it trained on source.kind={saved_kind!r} data "
-                         f"(source={OmegaConf.select(saved, 'source.name')}), this run is {kind!r}")
-
-    def named(key: str) -> bool:
-        return any(name == key or name.startswith(f"{key}.") or key.startswith(f"{name}.") for name in overridden)
-
-    resumed = cfg.copy()
-    taken, conflicts = [], []
-    for key in ARCHITECTURE_KEYS:
-        ours, theirs = OmegaConf.select(cfg, key), OmegaConf.select(saved, key)
-        if theirs is None or ours == theirs:
-            continue
-        if named(key):
-            conflicts.append(f"{key}: {_show(ours)} here, {_show(theirs)} in the checkpoint")
-        else:
-            OmegaConf.update(resumed, key, theirs, force_add=True)
-            taken.extend(_differences(key, ours, theirs))
-    if conflicts:
-        raise ValueError(f"cannot resume {str(path)!r} with other network/robot settings ("
-                         + "; ".join(conflicts) + "): drop those overrides, or start a new run")
-    unknown, settled_groups = [], [*ARCHITECTURE_KEYS, *NOT_RESUMED]
-
-    def take_whole(key: str) -> None:
-        value = OmegaConf.select(saved, key).copy()
-        ours = OmegaConf.select(cfg, key)
-        for name in _setting_keys(ours) if OmegaConf.is_dict(ours) else ():
-            if _interpolated(ours, name) and OmegaConf.select(value, name, default=_ABSENT) is not _ABSENT:
-                # Where this run writes (``logger.log_dir``) follows this run, not the saved one's folder.
-                OmegaConf.update(value, name, _raw(ours, name), merge=False)
-        OmegaConf.update(resumed, key, value, merge=False)
-        settled_groups.append(key)
-        taken.append(f"{key} (a {value._target_})")
-
-    def settled(key: str) -> bool:
-        return named(key) or any(key == group or key.startswith(f"{group}.") for group in settled_groups)
-
-    keys = _setting_keys(saved)
-    # An object the run built from another class than this configuration does (another logger,
-    # another trainer) is taken whole: its settings are that class's, not to be mixed with these.
-    for key in keys:
-        parent, _, name = key.rpartition(".")
-        if name == "_target_" and parent and not settled(parent) and \
-                OmegaConf.is_dict(OmegaConf.select(cfg, parent, default=None)) and \
-                OmegaConf.select(cfg, key, default=_ABSENT) != OmegaConf.select(saved, key):
-            take_whole(parent)
-    for key in keys:
-        if settled(key) or _interpolated(cfg, key):
-            continue
-        ours = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False)
-        if ours is _ABSENT:
-            unknown.append(key)
-        elif _plain(ours) != _plain(theirs := OmegaConf.select(saved, key)):
-            OmegaConf.update(resumed, key, theirs, merge=False)
-            taken.append(f"{key}={_show(theirs)}")
-    if taken:
-        print(f"resume: took {', '.join(taken)} from the checkpoint (the run's own settings)")
-    if unknown:
-        print(f"resume: the checkpoint's {', '.join(unknown)} are not settings of this configuration "
-              f"(another group, or an older version): not used")
-    return resumed
-
-
-def _differences(key: str, ours, theirs) -> list[str]:
-    """``key.leaf=value`` for each of ``theirs``'s settings that differs from ``ours`` (``key=value``
-    for a setting that is not a group)."""
-    if not (OmegaConf.is_dict(theirs) and OmegaConf.is_dict(ours)):
-        return [f"{key}={_show(theirs)}"]
-    return [f"{key}.{name}={_show(value)}" for name in _setting_keys(theirs)
-            if _plain(OmegaConf.select(ours, name, default=None, throw_on_resolution_failure=False))
-            != _plain(value := OmegaConf.select(theirs, name))]
-
-
-def _setting_keys(node: DictConfig, prefix: str = "") -> list[str]:
-    """The dotted keys of ``node``'s settings: its leaves, a list counting as one."""
-    keys = []
-    for name in node:
-        key, child = f"{prefix}{name}", node._get_node(name)
-        if OmegaConf.is_dict(child) and not child._is_interpolation():
-            keys.extend(_setting_keys(child, f"{key}."))
-        else:
-            keys.append(key)
-    return keys
-
-
-def _interpolated(cfg: DictConfig, key: str) -> bool:
-    """Whether setting ``key`` of ``cfg`` is an interpolation (``${...}``), unresolved."""
-    parent, _, name = key.rpartition(".")
-    node = OmegaConf.select(cfg, parent, default=None, throw_on_resolution_failure=False) if parent else cfg
-    return OmegaConf.is_dict(node) and name in node and OmegaConf.is_interpolation(node, name)
-
-
-def _raw(cfg: DictConfig, key: str) -> str:
-    parent, _, name = key.rpartition(".")
-    return (OmegaConf.select(cfg, parent) if parent else cfg)._get_node(name)._value()
-
-
-def _plain(value):
-    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
-
-
-def _show(value) -> str:
-    return repr(_plain(value))
+def _choices_of(config: dict) -> dict:
+    """The group choices a format 3 config shows by itself (each of these groups names its file in
+    a ``name`` or ``kind``); the others (design, world model, imagination, logger) a resume takes
+    setting by setting from the config."""
+    groups = {"algo": ("algo", "name"), "source": ("source", "name"), "policy": ("policy", "name")}
+    choices = {group: config.get(node, {}).get(key) for group, (node, key) in groups.items()}
+    if isinstance(config.get("robot"), dict):
+        choices["robot"] = config["robot"].get("kind", "vertebrate")
+    return {group: choice for group, choice in choices.items() if isinstance(choice, str)}
 
 
 @dataclass
