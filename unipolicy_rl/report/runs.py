@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 
 from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.evaluation import DesignResult, read_csv
-from unipolicy_rl.training.metrics_file import EPOCH
+from unipolicy_rl.training.metrics_file import EPOCH, without_redone_epochs
 from unipolicy_rl.training.metrics_file import FILE_NAME as METRICS
 
 CONFIG = Path(".hydra") / "config.yaml"
@@ -342,22 +342,11 @@ def _read_metrics(run: Run) -> None:
     run.last_row_cut = cut
     if cut:
         run.problems.append(f"{path}: its last row was cut short (killed while writing it?); that row is dropped")
-    run.columns, run.rows = columns, _drop_redone_epochs(rows)
+    run.columns, run.rows = columns, without_redone_epochs(rows)
 
 
 def _number(value: str) -> float:
     return math.nan if value.strip() == "" else float(value)
-
-
-def _drop_redone_epochs(rows: list[dict[str, float]]) -> list[dict[str, float]]:
-    """A run resumed from an older checkpoint appends epochs it had already logged: the later
-    rows are the ones its checkpoint continued from, so earlier rows from that epoch on go."""
-    kept: list[dict[str, float]] = []
-    for row in rows:
-        if kept and row[EPOCH] < kept[-1][EPOCH]:
-            kept = [old for old in kept if old[EPOCH] < row[EPOCH]]
-        kept.append(row)
-    return kept
 
 
 def _diagnose(run: Run) -> None:

@@ -15,6 +15,24 @@ from pathlib import Path
 from unipolicy_rl.metric_columns import *  # noqa: F403  (the column names, one source)
 
 
+def without_redone_epochs(rows: list[dict[str, float]]) -> list[dict[str, float]]:
+    """``rows`` (numbers, in file order) with each epoch once: a run resumed from an older checkpoint
+    into its own folder logs again the epochs after it, and the later rows are the ones its
+    checkpoint continued from. A real row closes its epoch (a model-based epoch's imagined rows
+    come first, with the same number), so a row of an epoch at or before the last closed one
+    starts a redo: the earlier rows from that epoch on go."""
+    kept: list[dict[str, float]] = []
+    for row in rows:
+        if kept and (row[EPOCH] < kept[-1][EPOCH] or (row[EPOCH] == kept[-1][EPOCH] and _closes_epoch(kept[-1]))):
+            kept = [old for old in kept if old[EPOCH] < row[EPOCH]]
+        kept.append(row)
+    return kept
+
+
+def _closes_epoch(row: dict[str, float]) -> bool:
+    return row.get(IMAGINED) != 1.0  # a real row (a file from before the column holds real rows only)
+
+
 class MetricsCSV:
     """``metrics.csv``: one row per training batch, appended (a resumed run continues the file).
 
@@ -30,6 +48,18 @@ class MetricsCSV:
         if path.is_file():
             with path.open(newline="") as file:
                 self.columns = next(csv.reader(file), [])
+
+    def drop_epochs_after(self, epoch: int) -> None:
+        """Removes the rows of the epochs after ``epoch``: a run resumed from its checkpoint at
+        ``epoch`` logs them again, so each epoch is in the file once (the redone one replacing
+        the one a kill cut off)."""
+        if not self.path.is_file():
+            return
+        with self.path.open(newline="") as file:
+            rows = list(csv.DictReader(file))
+        kept = [row for row in rows if _epoch(row) <= epoch]
+        if len(kept) < len(rows):
+            self._rewrite(self.columns, kept)
 
     def append(self, row: dict[str, float]) -> None:
         new = [key for key in row if key not in self.columns]
@@ -58,3 +88,11 @@ class MetricsCSV:
             os.replace(temporary, self.path)
         finally:
             temporary.unlink(missing_ok=True)
+
+
+def _epoch(row: dict[str, str]) -> float:
+    """A written row's epoch (a row cut short by a kill, without one, counts as after every epoch)."""
+    try:
+        return float(row.get(EPOCH) or "inf")
+    except ValueError:
+        return float("inf")

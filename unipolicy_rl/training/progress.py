@@ -254,6 +254,7 @@ class RunLog:
     def __init__(self, logger, run_dir: Path, epochs: int, initial: int, title: str, show: bool) -> None:
         self.logger = logger
         self.csv = MetricsCSV(run_dir / columns.FILE_NAME)
+        self.csv.drop_epochs_after(initial)  # a resume into its own folder redoes the epochs after its checkpoint
         self.bar = tqdm.tqdm(total=epochs, initial=initial, disable=not show, desc=title)
         self.rows = 0
         self.postfix: dict[str, str] = {}
