@@ -115,7 +115,9 @@ def test_source_kind_and_a_model_source_s_groups_are_checked_by_validation():
         validate_config(composed(["source=moe", "~world_model"]))
     with pytest.raises(ValueError, match="a model-based source needs a imagination config"):
         validate_config(composed(["source=moe", "~imagination"]))
-    validate_config(composed(["source=se", "world_model=moe"]))  # a real source ignores a world model
+    # A real source reads no world model: one chosen with it is refused, not ignored.
+    with pytest.raises(ValueError, match="world_model is read by a model-based source only, and source=se"):
+        validate_config(composed(["source=se", "world_model=moe"]))
 
 
 def test_device_is_checked_once_by_its_resolver_which_validation_runs():

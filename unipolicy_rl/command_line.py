@@ -37,11 +37,16 @@ def run_checked(make_parser: Parser, check_arguments: Check, run: Run, argv: Seq
 
 
 def run_command_line(make_parser: Parser, check_arguments: Check, run: Run, argv: Sequence[str] | None) -> None:
-    """Command-line entry: a bad argument or a missing file exits with the parser's usage error."""
+    """Command-line entry: a bad argument or a missing file exits with the parser's usage error;
+    one that only the run finds (a checkpoint that is not ours, an option its policy has no use
+    for) with one line naming it, not a traceback."""
     parser = make_parser()
     args = parser.parse_args(argv)
     try:
         check_arguments(args)
     except (ValueError, FileNotFoundError) as error:
         parser.error(str(error))
-    run(args)
+    try:
+        run(args)
+    except (ValueError, FileNotFoundError) as error:
+        parser.exit(1, f"{parser.prog}: error: {error}\n")

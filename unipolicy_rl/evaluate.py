@@ -79,6 +79,9 @@ def run(args: argparse.Namespace) -> dict:
     out_dir = args.out if args.out is not None else args.checkpoint.parent / "evaluation"
     if loaded.env_class is MorphologyWalkerEnv:
         return _run_morphologies(args, loaded, designs, out_dir)
+    if args.morphologies is not None:
+        raise ValueError(f"--morphologies {args.morphologies} chooses among a robot=grammar policy's morphologies, and "
+                         f"{args.checkpoint} is a policy of the one vertebrate robot: drop --morphologies")
     results = evaluate_on_designs(
         loaded.policy,
         dict(loaded.env_kwargs),

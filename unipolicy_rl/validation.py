@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
 from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
-from unipolicy_rl.envs.morphology import SAMPLINGS
+from unipolicy_rl.envs.morphology import HINGE_TYPES, SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
 from unipolicy_rl.envs.tokens import MORPHOLOGY
@@ -77,6 +77,18 @@ def _optional(rule: Callable[[object], str | None]) -> Callable[[object], str | 
     return check
 
 
+def _some_of(choices) -> Callable[[object], str | None]:
+    """A non-empty list of values from ``choices``."""
+
+    def check(value) -> str | None:
+        if isinstance(value, str) or not hasattr(value, "__iter__") or not list(value) or \
+                not set(value) <= set(choices):
+            return f"must be a non-empty list of {sorted(choices)}"
+        return None
+
+    return check
+
+
 def _sizes(value) -> str | None:
     if not all(isinstance(size, int) and not isinstance(size, bool) and size >= 1 for size in value):
         return "must be a list of positive integers"
@@ -120,6 +132,7 @@ ROBOT_RULES: dict[str, dict[str, Callable[[object], str | None]]] = {
         "robot.morphologies": _one_of(set(GRAMMAR_SIDES)),
         "robot.sampling": _one_of(set(SAMPLINGS)),
         "robot.max_links": _optional(POSITIVE),
+        "robot.driven_joints": _optional(_some_of(HINGE_TYPES)),
         "robot.design_in_tokens": _flag,
         "robot.token_layout": _one_of(set(TOKEN_LAYOUTS)),
         "robot.evaluation_every_steps": POSITIVE,
@@ -262,12 +275,33 @@ def _world_model_reads_the_robot(cfg: DictConfig) -> str | None:
 
 
 def _model_source_groups(cfg: DictConfig) -> str | None:
+    """A model source has a world model and an imagination; a real source reads neither, so one
+    chosen with it would be ignored without a word (but for an off-policy learner's own MBPO
+    imagination, which it checks itself)."""
     if cfg.source.kind == "model":
         for group in ("world_model", "imagination"):
             if cfg.get(group) is None:
                 return (f"a model-based source needs a {group} config (e.g. world_model=moe, which selects its "
                         f"imagination)")
+        return None
+    source = cfg.source.get("name", cfg.source.kind)
+    if cfg.get("world_model") is not None:
+        return (f"world_model is read by a model-based source only, and source={source} trains on the real robots: "
+                f"drop world_model=..., or choose a model source (source=moe or source=pce, which select their "
+                f"world_model)")
+    imagination = cfg.get("imagination")
+    if imagination is not None and not (cfg.algo.name not in ON_POLICY_ALGOS and _mbpo_shaped(imagination)):
+        return (f"imagination is read by a model-based source only, and source={source} trains on the real robots: "
+                f"drop imagination=..., or choose a model source (source=moe or source=pce)")
     return None
+
+
+def _mbpo_shaped(imagination: DictConfig) -> bool:
+    """An off-policy learner's own imagination (imagination=mbpo: one imagined batch per fit, the
+    real batches training too), which such a learner's config may carry whatever its source."""
+    stopping = imagination.get("stopping") or {}
+    return bool(imagination.get("train_on_real")) and stopping.get("kind") == "fixed" and \
+        stopping.get("max_updates") == 1
 
 
 def _critic_fit_runs_here(cfg: DictConfig) -> str | None:
@@ -294,7 +328,7 @@ def _critic_fit_runs_here(cfg: DictConfig) -> str | None:
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("episodes_per_epoch", "workers"): _equal_shares,
-    ("source.kind", "world_model", "imagination"): _model_source_groups,
+    ("source", "world_model", "imagination", "algo.name"): _model_source_groups,
     ("robot",): _known_robot,
     ("robot", "policy.name"): _policy_reads_the_robot,
     ("robot", "policy.name", "source.kind"): _clock_is_read,
@@ -360,7 +394,7 @@ def validate_config(cfg: DictConfig) -> None:
     _built("device", lambda: resolve_device(cfg.device))
     if cfg.collector.backend == "ray":
         try:
-            require_ray()
+            require_ray(cfg.collector.ray_address)
         except ImportError as error:
             raise ValueError(f"collector.backend=ray: {error}") from None
     if cfg.source.kind == "model":  # its world_model and imagination groups are there (JOINT_RULES)

@@ -15,6 +15,7 @@ things our epochs need from it, as the multi-process path already has them:
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable, Sequence
 
 import torch
@@ -50,13 +51,17 @@ class EpochRayCollector(RayCollector):
         super().shutdown(timeout=timeout, shutdown_ray=shutdown_ray or self._owns_cluster)
 
 
-def require_ray():
-    """``ray``, or an ImportError that says how to get it."""
+def require_ray(address: str | None = None):
+    """``ray``, or an ImportError that says how to get it; for a ``ray://`` ``address``, with the
+    client Ray connects there through (``ray[client]``)."""
     try:
         import ray
     except ImportError as error:
         raise ImportError("collector.backend=ray needs Ray: pip install 'unipolicy_rl[ray]' (or pip install ray)") \
             from error
+    if address is not None and str(address).startswith("ray://") and importlib.util.find_spec("grpc") is None:
+        raise ImportError(f"collector.ray_address={address} joins a cluster through Ray's client, which is not "
+                          f"installed: pip install 'unipolicy_rl[ray]' (or pip install 'ray[client]')")
     return ray
 
 
@@ -69,16 +74,21 @@ def make_epoch_ray_collector(env_factories: Sequence[Callable], policy: TensorDi
     local one with a CPU per worker, shut down with the collector. Each batch stacks the
     workers' batches (``[workers, robots, steps]``), as the multi-process collector's does.
     """
-    ray = require_ray()
+    ray = require_ray(address)
     owns_cluster = address is None and not ray.is_initialized()
     init = {"address": address, "ignore_reinit_error": True, "include_dashboard": False, "log_to_driver": False,
             "configure_logging": False}
     if owns_cluster:
         init["num_cpus"] = max(1, round(cpus_per_worker * len(env_factories)))
-    collector = EpochRayCollector(list(env_factories), policy, owns_cluster=owns_cluster,
-                                  frames_per_batch=frames_per_batch, total_frames=total_frames,
-                                  collector_class=SeededCollector, sync=True, postproc=postproc,
-                                  ray_init_config=init,
-                                  remote_configs={"num_cpus": cpus_per_worker, "num_gpus": None, "memory": None})
+    try:
+        collector = EpochRayCollector(list(env_factories), policy, owns_cluster=owns_cluster,
+                                      frames_per_batch=frames_per_batch, total_frames=total_frames,
+                                      collector_class=SeededCollector, sync=True, postproc=postproc,
+                                      ray_init_config=init,
+                                      remote_configs={"num_cpus": cpus_per_worker, "num_gpus": None, "memory": None})
+    except ConnectionError as error:  # ray.init: no cluster at the address
+        raise ConnectionError(f"collector.ray_address={address}: no Ray cluster answers there ({error}); start one "
+                              f"(ray start --head) or give its address, or set collector.ray_address=null for a "
+                              f"local cluster") from None
     collector.update_policy_weights_()  # connects the weight sync before the first batch
     return collector

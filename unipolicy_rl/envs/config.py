@@ -102,6 +102,12 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
     layout = robot.get("token_layout", "packed")
     if layout not in TOKEN_LAYOUTS:
         raise ValueError(f"robot.token_layout must be one of {TOKEN_LAYOUTS}, got {layout!r}")
+    if robot.max_links is not None and layout == "packed":  # (a structural layout's slots: the env checks them)
+        largest = max(morphology.num_links for morphology in morphologies)
+        if largest > max_links:
+            raise ValueError(f"robot.max_links={max_links} token slots are fewer than the {largest} links of the "
+                             f"largest robot of the morphologies {side or robot.morphologies!r}: raise "
+                             f"robot.max_links to {largest} or more, or set it null (room for all)")
     return {
         "morphologies": morphologies,
         "max_links": max_links,

@@ -144,6 +144,18 @@ class OffPolicySettings:
         if isinstance(self.real_data_share, bool) or not (isinstance(self.real_data_share, (int, float))
                                                           and 0 <= self.real_data_share <= 1):
             raise ValueError(f"algo.real_data_share must lie in [0, 1], got {self.real_data_share!r}")
+        if self.learning_starts > self.buffer_capacity:
+            raise ValueError(f"algo.learning_starts ({self.learning_starts}) must not exceed algo.buffer_capacity "
+                             f"({self.buffer_capacity}): the buffer never holds that many transitions, so the run "
+                             f"would never take a gradient step")
+        betas = self.adam_betas
+        if not (isinstance(betas, (tuple, list)) and len(betas) == 2 and all(
+                isinstance(beta, (int, float)) and not isinstance(beta, bool) and 0 <= beta < 1 for beta in betas)):
+            raise ValueError(f"algo.adam_betas must be two numbers in [0, 1) (Adam's beta1, beta2), got {betas!r}")
+        if isinstance(self.alpha_init, bool) or not (isinstance(self.alpha_init, (int, float))
+                                                     and 0 < self.alpha_init < math.inf):
+            raise ValueError(f"algo.alpha_init (the entropy temperature's start, learned as its log) must be a "
+                             f"positive number, got {self.alpha_init!r}")
         if not (self.target_entropy == "auto" or isinstance(self.target_entropy, (int, float))):
             raise ValueError(f"algo.target_entropy must be 'auto' or a number, got {self.target_entropy!r}")
 
@@ -184,7 +196,30 @@ def make_loss(settings: OffPolicySettings, actor: TensorDictModuleBase, observat
     else:
         loss = REDQLoss(actor, critic, sub_sample_len=settings.sampled_critics, delay_qvalue=True, **common)
     loss.make_value_estimator(gamma=settings.gamma)
+    create_lazy_buffers(loss)
     return loss
+
+
+def create_lazy_buffers(loss: LossModule) -> None:
+    """Creates the buffers a TorchRL loss would create at its first step, now.
+
+    REDQLoss registers ``target_entropy_buffer`` the first time it reads its target entropy: a
+    checkpoint written after a step holds it, and the fresh loss of a resume would refuse it as an
+    unexpected key. The value is a constant of the settings (``auto``: minus the number of
+    actions), so creating it early changes nothing the loss computes. (SACLoss and CrossQLoss
+    create theirs, ``_target_entropy``, in their constructors.)
+    """
+    loss.target_entropy  # noqa: B018 - the property creates the buffer
+
+
+def with_lazy_buffers(loss: LossModule, saved: dict) -> dict:
+    """``saved`` (a loss's state dict) with the buffers :func:`create_lazy_buffers` adds taken from
+    ``loss`` where ``saved`` predates them (a checkpoint written before the loss's first step)."""
+    return {**{key: value for key, value in loss.state_dict().items() if key in LAZY_BUFFERS}, **saved}
+
+
+# The lazily created buffers of TorchRL's losses (create_lazy_buffers).
+LAZY_BUFFERS = ("target_entropy_buffer",)
 
 
 class OffPolicyLearner:
@@ -342,7 +377,7 @@ class OffPolicyLearner:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        self.loss.load_state_dict(state["loss"])
+        self.loss.load_state_dict(with_lazy_buffers(self.loss, state["loss"]))
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])

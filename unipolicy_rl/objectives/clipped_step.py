@@ -59,14 +59,20 @@ class ClippedSurrogate:
         for name in ("epochs", "minibatch_size"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+                raise ValueError(f"{CONFIG_KEYS[name]} must be a positive integer, got {value!r}")
         for name in ("lr", "clip_epsilon", "max_grad_norm"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf):
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+                raise ValueError(f"{CONFIG_KEYS[name]} must be a positive finite number, got {value!r}")
         if self.target_kl is not None and not (isinstance(self.target_kl, (int, float))
                                                and not isinstance(self.target_kl, bool) and self.target_kl > 0):
-            raise ValueError(f"target_kl must be null or a positive number, got {self.target_kl!r}")
+            raise ValueError(f"{CONFIG_KEYS['target_kl']} must be null or a positive number, got {self.target_kl!r}")
+
+
+# Each ClippedSurrogate field's config key (conf/algo/ppo.yaml), which its errors name.
+CONFIG_KEYS = {"epochs": "algo.policy_epochs", "minibatch_size": "algo.policy_minibatch_size", "lr": "algo.policy_lr",
+               "clip_epsilon": "algo.clip_epsilon", "max_grad_norm": "algo.max_grad_norm",
+               "target_kl": "algo.target_kl"}
 
 
 @dataclass(frozen=True)

@@ -100,12 +100,15 @@ class RunLock:
         written, self._written = self._written, None
         try:
             current = self.path.read_bytes()  # bytes: a garbage file must not fail the run's exit
+            if written is not None and current == written.encode():
+                self.path.unlink(missing_ok=True)
+            else:
+                print(f"left {self.path} in place: another process replaced this run's lock", flush=True)
         except FileNotFoundError:
             return
-        if written is not None and current == written.encode():
-            self.path.unlink(missing_ok=True)
-        else:
-            print(f"left {self.path} in place: another process replaced this run's lock", flush=True)
+        except OSError as error:  # an unwritable folder: the run's own error, if any, is the one to see
+            print(f"could not remove {self.path} ({type(error).__name__}: {error}); a later run takes it over "
+                  f"once this process has ended", flush=True)
 
     def _take_over_if_stale(self, mine: str) -> None:
         try:

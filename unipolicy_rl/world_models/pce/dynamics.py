@@ -148,6 +148,9 @@ class PCEDynamics(nn.Module):
                  members: int = 3, margin: float = 0.1, ridge: float = 1e-6, chunk_size: int = 16384,
                  lags: int = 0, elite_tolerance: float | None = 1.5) -> None:
         check_lags(lags)
+        if isinstance(order, bool) or not isinstance(order, int) or order < 1:
+            raise ValueError(f"order must be an integer >= 1 (order 0 keeps the constant term alone: a model that "
+                             f"ignores every input), got {order!r}")
         if elite_tolerance is not None and (isinstance(elite_tolerance, bool) or not isinstance(
                 elite_tolerance, (int, float)) or not elite_tolerance >= 1):
             raise ValueError(f"elite_tolerance must be a number >= 1 (a multiple of the best member's validation "
