@@ -39,8 +39,12 @@ CASES = {
     "redq": ["algo=redq", *OFF_POLICY, "algo.num_critics=3", "algo.updates_per_step=2"],
     "se-moe-trpo": [*ON_POLICY, *MOE],
 }
-# Wall-clock columns: the only ones a resumed run may differ in.
-TIMES = (columns.ELAPSED, *columns.EPOCH_TIMES, columns.CPU_TIME, columns.EVAL_SECONDS)
+
+
+def is_time(column: str) -> bool:
+    """A wall-clock column (``time/...``, ``eval/seconds``, ``model/fit_seconds``): the only ones a
+    resumed run may differ in."""
+    return column.startswith("time/") or column.endswith("seconds")
 
 
 def train(*overrides: str) -> subprocess.Popen:
@@ -70,7 +74,7 @@ def killed_after_its_first_checkpoint(folder: Path, overrides: list[str]) -> Non
 
 def metrics(folder: Path) -> list[dict[str, str]]:
     with (folder / columns.FILE_NAME).open(newline="") as file:
-        return [{key: value for key, value in row.items() if key not in TIMES} for row in csv.DictReader(file)]
+        return [{key: value for key, value in row.items() if not is_time(key)} for row in csv.DictReader(file)]
 
 
 def assert_the_same_run(straight: Path, resumed: Path) -> None:

@@ -8,6 +8,7 @@ besides: readers must not pay for training's imports.
 from __future__ import annotations
 
 import csv
+import math
 import os
 import shutil
 from pathlib import Path
@@ -18,19 +19,28 @@ from unipolicy_rl.metric_columns import *  # noqa: F403  (the column names, one 
 def without_redone_epochs(rows: list[dict[str, float]]) -> list[dict[str, float]]:
     """``rows`` (numbers, in file order) with each epoch once: a run resumed from an older checkpoint
     into its own folder logs again the epochs after it, and the later rows are the ones its
-    checkpoint continued from. A real row closes its epoch (a model-based epoch's imagined rows
-    come first, with the same number), so a row of an epoch at or before the last closed one
-    starts a redo: the earlier rows from that epoch on go."""
+    checkpoint continued from. An epoch has one real row (its imagined rows repeat its number):
+    a row of an earlier epoch than the last row's, or a second real row of an epoch, marks a
+    redo, and the earlier rows of the epochs redone go (those up to the last real one of them,
+    so a redone epoch's own imagined rows before its real row stay)."""
     kept: list[dict[str, float]] = []
+    last_real = -math.inf  # the latest epoch with a real row in ``kept``
     for row in rows:
-        if kept and (row[EPOCH] < kept[-1][EPOCH] or (row[EPOCH] == kept[-1][EPOCH] and _closes_epoch(kept[-1]))):
-            kept = [old for old in kept if old[EPOCH] < row[EPOCH]]
+        epoch = row[EPOCH]
+        if kept and epoch < kept[-1][EPOCH]:
+            kept = [old for old in kept if old[EPOCH] < epoch]
+            last_real = max((old[EPOCH] for old in kept if _is_real(old)), default=-math.inf)
+        elif _is_real(row) and epoch <= last_real:
+            end = max(index for index, old in enumerate(kept) if old[EPOCH] >= epoch and _is_real(old))
+            kept = [old for index, old in enumerate(kept) if old[EPOCH] < epoch or index > end]
         kept.append(row)
+        if _is_real(row):
+            last_real = max(last_real, epoch)
     return kept
 
 
-def _closes_epoch(row: dict[str, float]) -> bool:
-    return row.get(IMAGINED) != 1.0  # a real row (a file from before the column holds real rows only)
+def _is_real(row: dict[str, float]) -> bool:
+    return row.get(IMAGINED) != 1.0  # (a file from before the column holds real rows only)
 
 
 class MetricsCSV:
