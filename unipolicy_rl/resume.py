@@ -97,17 +97,9 @@ def settings_for_resume(cfg: DictConfig, state: dict, named: Sequence[str], choi
     """
     saved = OmegaConf.create(state["config"])
     pin_token_critic(saved)  # a token policy saved before policy.critic existed keeps its critic
-    theirs_choices = run_choices(state)
-    changed = {group: (choice, choices[group]) for group, choice in theirs_choices.items()
+    changed = {group: (choice, choices[group]) for group, choice in run_choices(state).items()
                if group in choices and choices[group] != choice}
-    refused = [f"{group}={now} here, {group}={then} in the checkpoint" for group, (then, now) in changed.items()
-               if group in FIXED_GROUPS]
-    for key in named:
-        if _under(key, FIXED_KEYS) or any(_under(fixed, (key,)) for fixed in FIXED_KEYS):
-            ours = _plain(OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=False))
-            then = _plain(_stored(saved, key))
-            if then is not _ABSENT and ours != then:
-                refused.append(f"{key}: {ours!r} here, {then!r} in the checkpoint")
+    refused = _refused(cfg, saved, named, changed)
     if refused:
         raise ValueError(f"cannot resume {str(path)!r} with another learner, network, robot, source or world model "
                          f"({'; '.join(refused)}): a resume keeps the ones the run's weights were trained with; "
@@ -115,20 +107,14 @@ def settings_for_resume(cfg: DictConfig, state: dict, named: Sequence[str], choi
 
     def followed(key: str) -> bool:
         """The command line (or this process) decides ``key``: it is this config's."""
-        if _under(key, named) or _under(key, NOT_RESUMED) or _under(key, changed):
+        if _under(key, [*named, *NOT_RESUMED, *changed]):
             return True
         raw = _raw(cfg, key)
         return isinstance(raw, str) and "${" in raw and any(name in raw for name in (*THIS_PROCESS, *named))
 
-    # An object the run built from another class than this config does (a checkpoint from before
-    # group choices were saved, with another logger) is the run's whole, not mixed with this one's.
-    whole = [key.rpartition(".")[0] for key in _setting_keys(saved) if key.endswith("._target_")
-             and not followed(key) and OmegaConf.is_dict(OmegaConf.select(cfg, key.rpartition(".")[0], default=None))
-             and OmegaConf.select(cfg, key, default=_ABSENT) != OmegaConf.select(saved, key)]
     resumed = cfg.copy()
-    changes, newer = [], []
-    for group, (then, now) in changed.items():
-        changes.append(f"{group}: {then} -> {now}")
+    changes = [f"{group}: {then} -> {now}" for group, (then, now) in changed.items()]
+    whole = _other_objects(cfg, saved, followed)
     for node in whole:
         value = OmegaConf.select(saved, node).copy()
         for key in _setting_keys(OmegaConf.select(cfg, node)):
@@ -136,6 +122,7 @@ def settings_for_resume(cfg: DictConfig, state: dict, named: Sequence[str], choi
                 OmegaConf.update(value, key, _raw(cfg, f"{node}.{key}"), merge=False)  # where this run writes
         OmegaConf.update(resumed, node, value, merge=False)
         changes.append(f"{node}: the checkpoint's, whole (a {value._target_})")
+    newer = []
     for key in _setting_keys(cfg):
         then = _stored(saved, key)
         if _under(key, whole):
@@ -158,6 +145,33 @@ def settings_for_resume(cfg: DictConfig, state: dict, named: Sequence[str], choi
     if unused:
         print(f"resume: the checkpoint's {', '.join(unused)} are not settings of this version: not used")
     return resumed
+
+
+def _refused(cfg: DictConfig, saved: DictConfig, named: Sequence[str], changed: Mapping[str, tuple]) -> list[str]:
+    """What this command line changes that a resume cannot: a group of :data:`FIXED_GROUPS`
+    chosen otherwise, a setting of :data:`FIXED_KEYS` set otherwise."""
+    refused = [f"{group}={now} here, {group}={then} in the checkpoint" for group, (then, now) in changed.items()
+               if group in FIXED_GROUPS]
+    for key in named:
+        if _under(key, FIXED_KEYS) or any(_under(fixed, (key,)) for fixed in FIXED_KEYS):
+            ours = _plain(OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=False))
+            then = _plain(_stored(saved, key))
+            if then is not _ABSENT and ours != then:
+                refused.append(f"{key}: {ours!r} here, {then!r} in the checkpoint")
+    return refused
+
+
+def _other_objects(cfg: DictConfig, saved: DictConfig, followed) -> list[str]:
+    """The nodes the run built from another class than this config does (a checkpoint from before
+    group choices were saved, with another logger): taken whole, not mixed with this config's."""
+    nodes = []
+    for key in _setting_keys(saved):
+        node = key.rpartition(".")[0]
+        if key.endswith("._target_") and not followed(key) and \
+                OmegaConf.is_dict(OmegaConf.select(cfg, node, default=None)) and \
+                OmegaConf.select(cfg, key, default=_ABSENT) != OmegaConf.select(saved, key):
+            nodes.append(node)
+    return nodes
 
 
 def record_resumed_config(cfg: DictConfig, run_dir: Path, output_subdir: str | None) -> None:

@@ -200,6 +200,10 @@ def make_loss(settings: OffPolicySettings, actor: TensorDictModuleBase, observat
     return loss
 
 
+# The buffers TorchRL's losses create at their first step (create_lazy_buffers makes them up front).
+LAZY_BUFFERS = ("target_entropy_buffer",)
+
+
 def create_lazy_buffers(loss: LossModule) -> None:
     """Creates the buffers a TorchRL loss would create at its first step, now.
 
@@ -216,10 +220,6 @@ def with_lazy_buffers(loss: LossModule, saved: dict) -> dict:
     """``saved`` (a loss's state dict) with the buffers :func:`create_lazy_buffers` adds taken from
     ``loss`` where ``saved`` predates them (a checkpoint written before the loss's first step)."""
     return {**{key: value for key, value in loss.state_dict().items() if key in LAZY_BUFFERS}, **saved}
-
-
-# The lazily created buffers of TorchRL's losses (create_lazy_buffers).
-LAZY_BUFFERS = ("target_entropy_buffer",)
 
 
 class OffPolicyLearner:
