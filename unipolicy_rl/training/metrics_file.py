@@ -14,6 +14,7 @@ import shutil
 from pathlib import Path
 
 from unipolicy_rl.metric_columns import *  # noqa: F403  (the column names, one source)
+from unipolicy_rl.metric_columns import EPOCH, IMAGINED
 
 
 def without_redone_epochs(rows: list[dict[str, float]]) -> list[dict[str, float]]:
