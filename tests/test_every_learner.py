@@ -51,13 +51,7 @@ def test_every_registered_learner_is_tried_here():
     assert set(SETTINGS) == set(LEARNER_NAMES)
 
 
-# REDQ's loss creates a buffer at its first update that a freshly built one lacks, so its state dict does
-# not load into a learner that has not updated yet (a resume's case): being fixed with the resume work.
-KNOWN_FAILURES = {"redq": "a trained REDQLoss's target_entropy_buffer is missing from a fresh one"}
-
-
-@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(reason=KNOWN_FAILURES[name]))
-                                  if name in KNOWN_FAILURES else name for name in LEARNER_NAMES])
+@pytest.mark.parametrize("name", LEARNER_NAMES)
 def test_a_learner_takes_an_update_and_one_rebuilt_from_its_state_continues_exactly(name, tmp_path):
     overrides = [f"algo={name}", *SETTINGS[name]]
     if name == "distill":
