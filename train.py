@@ -35,6 +35,8 @@ from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
 from unipolicy_rl.learners.initial_policy import policy_to_start_from
+from unipolicy_rl.learners.policy_average import end_of_epoch, learning_policy
+from unipolicy_rl.objectives.adaptive_kl import imagined_trust_region
 from unipolicy_rl.resume import named_keys, record_resumed_config, settings_for_resume, with_the_runs_groups
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
@@ -117,15 +119,22 @@ def main(cfg: DictConfig) -> dict:
                 # (stopping.kind=real: each check measures the policy's surrogate on this epoch's real batch)
                 real_surrogate = (partial(learner.real_surrogate, batch)
                                   if world.imagination.stopping.kind == "real" else None)
-                imagined = world.imagination.epoch(epoch, world.buffer.contents(), learner.policy, real_surrogate)
-                for rollout in imagined:
-                    started = time.perf_counter()
-                    row = {columns.IMAGINED: 1.0, **learner.update(rollout), **imagined_metrics(rollout)}
-                    log.row(epoch, {**row, **real.metrics(), columns.COLLECT_TIME: imagined.rollout_seconds,
-                                    columns.UPDATE_TIME: time.perf_counter() - started})
+                # (algo.policy_average: the learner's own weights, not the average that acts)
+                imagined = world.imagination.epoch(epoch, world.buffer.contents(), learning_policy(learner),
+                                                   real_surrogate)
+                # (imagination.adaptive_kl: their KL bound shrinks as the model's fresh error rises)
+                with imagined_trust_region(world.imagination.settings.adaptive_kl, learner,
+                                           metrics.get(columns.FRESH_ERROR)) as bound:
+                    for rollout in imagined:
+                        started = time.perf_counter()
+                        row = {columns.IMAGINED: 1.0, **learner.update(rollout), **imagined_metrics(rollout)}
+                        log.row(epoch, {**row, **real.metrics(), columns.COLLECT_TIME: imagined.rollout_seconds,
+                                        columns.UPDATE_TIME: time.perf_counter() - started})
+                metrics.update(bound)
                 metrics.update(imagined.metrics())
                 if fit is not None:
                     metrics.update(fit.result().as_metrics())  # the model now holds this epoch's fit
+            metrics.update(end_of_epoch(learner))  # algo.policy_average: the acting policy's averaging step
             real.update_policy_weights_()
             metrics[columns.COLLECT_TIME] = collected - tick
             metrics[columns.UPDATE_TIME] = time.perf_counter() - collected

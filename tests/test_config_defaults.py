@@ -39,6 +39,7 @@ BASES: dict[str, tuple[str, str]] = {
     "unipolicy_rl.collectors.ImaginationSettings": ("imagination/branch.yaml", ""),
     "unipolicy_rl.collectors.HorizonSchedule": ("imagination/branch.yaml", "horizon"),
     "unipolicy_rl.collectors.StoppingRule": ("imagination/branch.yaml", "stopping"),
+    "unipolicy_rl.objectives.adaptive_kl.AdaptiveKL": ("imagination/branch.yaml", "adaptive_kl"),
     "unipolicy_rl.world_models.GaussianEnsemble": ("world_model/moe.yaml", "model"),
     "unipolicy_rl.world_models.ModelTrainer": ("world_model/moe_thesis.yaml", "trainer"),
     "unipolicy_rl.world_models.CellEnsemble": ("world_model/moe_thesis.yaml", "model"),

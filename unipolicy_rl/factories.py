@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, RewardSum, TransformedEnv
@@ -34,6 +34,7 @@ from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, TRPOLearner
 from unipolicy_rl.learners.distillation import DistillationLearner, SpecialistTeachers
 from unipolicy_rl.learners.off_policy import check_model_based_imagination
+from unipolicy_rl.learners.policy_average import AveragedLearner, averaging
 from unipolicy_rl.objectives import ClippedStep, TRPOLoss, TRPOUpdater
 from unipolicy_rl.observation_statistics import ObservationStatistics
 from unipolicy_rl.policy import (
@@ -239,14 +240,16 @@ LEARNER_MEMBERS = (*Learner.__annotations__, *(name for name, member in vars(Lea
 
 def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Learner:
     """The learner ``algo.name`` names, sized for the env; one registered in :data:`LEARNERS` that
-    lacks a member of the :class:`Learner` interface is refused here, before any training."""
+    lacks a member of the :class:`Learner` interface is refused here, before any training. With
+    ``algo.policy_average.decay`` the policy that acts is an average of its weights (:class:`AveragedLearner`)."""
     check_settings(cfg, "algo.name")  # validation's rule (a direct caller may not have run validate_config)
     learner = LEARNERS[cfg.algo.name](cfg, observation_dim, action_dim)
     missing = [name for name in LEARNER_MEMBERS if not hasattr(learner, name)]
     if missing:
         raise TypeError(f"the learner of algo.name={cfg.algo.name!r} ({type(learner).__name__}) lacks "
                         f"{', '.join(missing)} of the Learner interface (unipolicy_rl.learners.Learner)")
-    return learner
+    decay = OmegaConf.select(cfg, "algo.policy_average.decay")
+    return AveragedLearner(learner, decay) if averaging(decay) else learner
 
 
 def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:

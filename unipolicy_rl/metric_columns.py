@@ -54,3 +54,4 @@ IMAGINED_PREFIX = "imagined/"  # imagined batches' figures: never real returns
 IMAGINED_REWARD_PER_STEP = IMAGINED_PREFIX + "reward_per_step"  # mean imagined reward per step
 MODEL_PREFIX = "model/"  # the world model's fit and surrogate accuracy
 MODEL_VALIDATION_MSE = MODEL_PREFIX + "validation_mse"  # the elites' standardised held-out error
+FRESH_ERROR = MODEL_PREFIX + "fresh_error"  # the model's error on the epoch's new real states, before its fit

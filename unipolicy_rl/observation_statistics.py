@@ -105,7 +105,14 @@ def refresh_normalizer(statistics: ObservationStatistics, normalizer: Observatio
     statistics.copy_to(normalizer)
     if mode == "jump":
         return
-    new_loc, new_scale = normalizer.loc.detach(), normalizer.scale.detach()
+    reexpress_networks(networks, old_loc, old_scale, normalizer.loc.detach(), normalizer.scale.detach())
+
+
+def reexpress_networks(networks: tuple[nn.Module, ...], old_loc: torch.Tensor, old_scale: torch.Tensor,
+                       new_loc: torch.Tensor, new_scale: torch.Tensor) -> None:
+    """Rewrites each of ``networks``, which read ``(o - old_loc) / old_scale``, in place to give the same
+    output on ``(o - new_loc) / new_scale``: what a ``preserve`` refresh does to the networks behind the
+    normaliser (and to any other network reading it, such as a policy average's actor)."""
     for network in networks:
         reader = _input_reader(network)
         if isinstance(reader, nn.Linear):

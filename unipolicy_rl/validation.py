@@ -324,6 +324,21 @@ def _critic_fit_runs_here(cfg: DictConfig) -> str | None:
     return None
 
 
+def _policy_average_fits(cfg: DictConfig) -> str | None:
+    """``algo.policy_average.decay`` is off or in (0, 1), and there is an on-policy actor to average."""
+    from unipolicy_rl.learners.policy_average import averaging  # (here: learners import torch's stack)
+
+    decay = OmegaConf.select(cfg, "algo.policy_average.decay")
+    try:
+        on = averaging(decay)
+    except ValueError as error:
+        return str(error)
+    if on and cfg.algo.name not in ON_POLICY_ALGOS:
+        return (f"algo.policy_average.decay={decay} averages an on-policy learner's actor "
+                f"(algo={' or algo='.join(ON_POLICY_ALGOS)}), not algo={cfg.algo.name}'s: drop it")
+    return None
+
+
 # keys -> rule, for the plain values checked against each other; run after the keys' own rules,
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
@@ -338,6 +353,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot", "algo"): _advantage_groups_exist,
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
     ("algo", "source"): _critic_fit_runs_here,
+    ("algo",): _policy_average_fits,
 }
 
 
@@ -407,6 +423,19 @@ def validate_config(cfg: DictConfig) -> None:
             check_members_disagree(model)
         if cfg.algo.name not in ON_POLICY_ALGOS:
             check_model_based_imagination(imagination)
+        _check_adaptive_kl(cfg, imagination.adaptive_kl)
+
+
+def _check_adaptive_kl(cfg: DictConfig, rule) -> None:
+    """``imagination.adaptive_kl`` (checked itself when built) bounds TRPO's steps, under ``algo.max_kl``."""
+    if not rule.on:
+        return
+    if cfg.algo.name != "trpo":
+        raise ValueError(f"imagination.adaptive_kl shrinks TRPO's KL bound (algo.max_kl), and algo={cfg.algo.name} "
+                         f"takes no such step: use algo=trpo, or set imagination.adaptive_kl.reference=null")
+    if rule.floor > cfg.algo.max_kl:
+        raise ValueError(f"imagination.adaptive_kl.floor={rule.floor} exceeds algo.max_kl={cfg.algo.max_kl}: the "
+                         f"bound would never shrink; set a floor below max_kl")
 
 
 def _get(cfg: DictConfig, key: str):

@@ -33,6 +33,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from unipolicy_rl.collectors.real import IMAGINED, label, truncate_last_step
 from unipolicy_rl.collectors.replay import COLLECTED_IN
 from unipolicy_rl.envs.reward import RewardWeights
+from unipolicy_rl.objectives.adaptive_kl import AdaptiveKL
 from unipolicy_rl.seeding import IMAGINATION, epoch_seed
 from unipolicy_rl.world_models.disagreement import (
     DISAGREEMENT,
@@ -160,6 +161,8 @@ class ImaginationSettings:
             core to spare: the epoch then takes about the longer of the fit and the updates, not
             their sum. The first fit, with no model before it, runs before the updates.
         stopping: how many updates follow each model fit.
+        adaptive_kl: the imagined updates' KL bound, shrunk as the model's fresh error rises
+            (:class:`~unipolicy_rl.objectives.adaptive_kl.AdaptiveKL`; off by default).
     """
 
     steps_per_batch: int = 5000
@@ -174,6 +177,7 @@ class ImaginationSettings:
     fit_every: int = 1
     background_fit: bool = False
     stopping: StoppingRule = StoppingRule()
+    adaptive_kl: AdaptiveKL = AdaptiveKL()
 
     def __post_init__(self) -> None:
         if self.rollout not in ROLLOUTS:
