@@ -2,10 +2,10 @@
 
 A model-based run's policy moves after every imagined update, and a step the model was wrong
 about reaches the robot at once: the policy walks, then one design falls back for a few
-evaluations (docs/results.md). Averaging the weights over the last few epochs (Polyak averaging;
-the EMA of the parameters kept by SWA, ``torch.optim.swa_utils.AveragedModel``, and by the
-target networks of off-policy RL) smooths those moves out of the policy that acts, while the
-learner goes on training its own weights.
+evaluations (the league's records, docs/league/runs). Averaging the weights over the last few
+epochs (Polyak averaging, as ``torch.optim.swa_utils.AveragedModel`` and the target networks of
+off-policy RL keep it) smooths those moves out of the policy that acts, while the learner goes
+on training its own weights.
 
 :class:`AveragedLearner` wraps an on-policy learner: its :attr:`~AveragedLearner.policy`, the one
 the real collectors run, the periodic evaluation measures and the checkpoints save (``policy``
