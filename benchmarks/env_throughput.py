@@ -34,7 +34,7 @@ from unipolicy_rl.envs import (
     WalkerEnv,
     WalkerSimulation,
 )
-from unipolicy_rl.envs.parallel import SleepingParallelEnv
+from unipolicy_rl.cpu_speed.parallel_env import SleepingParallelEnv
 
 DE = DesignDistribution.fixed(0.175, 0.5)
 

@@ -10,7 +10,7 @@ costs the same whatever the accuracy. The policy is the one training runs:
 ``make_actor(18, 4)`` behind an ``ObservationNorm`` (``make_collecting_policy``), with
 observation statistics from the same data.
 
-Imagined: :class:`ImaginedWalkerEnv` rolled out as the model-based collector does
+Imagined: :class:`ImaginedEnv` rolled out as the model-based collector does
 (``env.rollout(horizon, policy, break_when_any_done=False)`` under ``torch.no_grad``, start
 states drawn from the real transitions, a member per trajectory), timed per rollout, for
 each ``TRAJECTORIESxHORIZON`` batch. Training's batches are 5000 steps: 500 x 10 at the
@@ -50,7 +50,7 @@ from unipolicy_rl.collectors import imagined_metrics, truncate_last_step
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_collecting_policy, make_observation_norm
-from unipolicy_rl.world_models import DisagreementCut, ImaginedWalkerEnv, StateLayout, make_world_model
+from unipolicy_rl.world_models import DisagreementCut, ImaginedEnv, StateLayout, make_world_model
 
 REAL_STEPS = 100
 
@@ -106,12 +106,12 @@ def main() -> None:
     real = BatchedWalkerEnv(32, full_state=True)
     real.set_seed(0)
     world_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic)
-    imagined = {batch: ImaginedWalkerEnv(world_model, real, starts, batch[0]) for batch in batches}
+    imagined = {batch: ImaginedEnv(world_model, real, starts, batch[0]) for batch in batches}
     cutting = {}
     if args.disagreement_cut is not None:
         cut = DisagreementCut.from_transitions(args.disagreement_cut, data, model.layout.robot_size)
         cut_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic, cut=cut)
-        cutting = {batch: ImaginedWalkerEnv(cut_model, real, starts, batch[0]) for batch in batches}
+        cutting = {batch: ImaginedEnv(cut_model, real, starts, batch[0]) for batch in batches}
     for threads in thread_counts:  # untimed warm-up: robot builds, first allocations
         torch.set_num_threads(threads)
         timed_rollout(real, policy, REAL_STEPS)

@@ -43,7 +43,7 @@ def main(epochs: int = 5, robots: int = 10, episode_length: int = 100, updates_p
     env = BatchedWalkerEnv(robots, full_state=True, episode_length=episode_length)  # "state": every link, for the model
     layout = StateLayout.for_env(RobotSettings(), observation="thesis", append_design=False, model_state="full")
     model = GaussianEnsemble(layout, action_dim=4)
-    transitions = TransitionBuffer(200_000, layout.from_full, model.memory_of)
+    transitions = TransitionBuffer.for_model(200_000, model)
     settings = ImaginationSettings(steps_per_batch=2000, member_per_step=True, train_on_real=True,
                                    horizon=HorizonSchedule(start=1, end=5, first_epoch=1, last_epoch=epochs),
                                    stopping=StoppingRule(kind="fixed", max_updates=1))

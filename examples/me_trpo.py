@@ -34,7 +34,7 @@ def main(epochs: int = 5, robots: int = 10, episode_length: int = 100, seed: int
     env = BatchedWalkerEnv(robots, full_state=True, episode_length=episode_length)  # "state": every link, for the model
     layout = StateLayout.for_env(RobotSettings(), observation="thesis", append_design=False, model_state="full")
     model = GaussianEnsemble(layout, action_dim=4)
-    buffer = TransitionBuffer(200_000, layout.from_full, model.memory_of)
+    buffer = TransitionBuffer.for_model(200_000, model)
     settings = ImaginationSettings(steps_per_batch=2000, stopping=StoppingRule(max_updates=10, check_starts=20))
     imagination = Imagination(model, env, RewardWeights(), settings, seed=seed, episode_length=episode_length)
     returns = []

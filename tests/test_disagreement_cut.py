@@ -17,7 +17,7 @@ from unipolicy_rl.world_models import (
     DisagreementCut,
     Dynamics,
     GaussianEnsemble,
-    ImaginedWalkerEnv,
+    ImaginedEnv,
     ModelTrainer,
     PCEDynamics,
     StateLayout,
@@ -97,7 +97,7 @@ def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past
     at, horizon = 3, 6
     cut = DisagreementCut(GAP / 2, only_split_scale())
     world_model = make_world_model(DivergingMembers(at), RewardWeights(), deterministic=deterministic, cut=cut)
-    env = ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=4)
+    env = ImaginedEnv(world_model, reference, origin_starts, batch_size=4)
     rollout = env.rollout(horizon, make_actor(18, 4), break_when_any_done=False)
     cut = rollout["next", "disagreement_cut"].squeeze(-1)
     expected = torch.zeros(4, horizon, dtype=torch.bool)
@@ -116,7 +116,7 @@ def test_a_branch_is_cut_truncated_at_exactly_the_step_its_members_disagree_past
 def test_a_threshold_above_the_disagreement_never_cuts(reference, deterministic):
     cut = DisagreementCut(2 * GAP, only_split_scale())
     world_model = make_world_model(DivergingMembers(2), RewardWeights(), deterministic=deterministic, cut=cut)
-    rollout = ImaginedWalkerEnv(world_model, reference, origin_starts, 3).rollout(5, break_when_any_done=False)
+    rollout = ImaginedEnv(world_model, reference, origin_starts, 3).rollout(5, break_when_any_done=False)
     assert not rollout["next", "done"].any() and (rollout["next", "disagreement"][:, 2:] == GAP).all()
 
 
@@ -154,7 +154,7 @@ def test_without_the_cut_imagination_is_unchanged(reference):
     def rollout(cut):
         torch.manual_seed(1)
         starts = lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design")  # noqa: E731
-        env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), cut=cut), reference, starts, 5)
+        env = ImaginedEnv(make_world_model(model, RewardWeights(), cut=cut), reference, starts, 5)
         return env.rollout(6, policy, break_when_any_done=False)
 
     off = rollout(None)
@@ -169,7 +169,7 @@ def test_without_the_cut_imagination_is_unchanged(reference):
 def test_the_imagined_env_with_the_cut_passes_torchrls_checks(reference, deterministic):
     cut = DisagreementCut(GAP / 2, only_split_scale())
     world_model = make_world_model(DivergingMembers(1), RewardWeights(), deterministic=deterministic, cut=cut)
-    check_env_specs(ImaginedWalkerEnv(world_model, reference, origin_starts, batch_size=3))
+    check_env_specs(ImaginedEnv(world_model, reference, origin_starts, batch_size=3))
 
 
 @pytest.mark.parametrize("kind", ["pce", "moe"])
@@ -190,7 +190,7 @@ def test_deterministic_steps_with_the_cut_are_the_uncut_steps_and_their_disagree
     def rollout(cut):
         torch.manual_seed(1)
         starts = lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design")  # noqa: E731
-        env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), deterministic=True, cut=cut), reference,
+        env = ImaginedEnv(make_world_model(model, RewardWeights(), deterministic=True, cut=cut), reference,
                                 starts, 5)
         return env.rollout(6, policy, break_when_any_done=False)
 

@@ -10,7 +10,7 @@ from unipolicy_rl.collectors import transitions
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
 from unipolicy_rl.world_models import (
     ClosedFormTrainer,
-    ImaginedWalkerEnv,
+    ImaginedEnv,
     PCEDynamics,
     SparsePCEDynamics,
     make_world_model,
@@ -124,7 +124,7 @@ def test_the_lagged_imagined_env_passes_torchrls_checks_and_feeds_back_its_own_p
     # Starts from the buffer: one at an episode's start (memory zero), one within an episode.
     starts = data[torch.tensor([0, 7])].select("state", "design")
     assert (starts["state"][0, robot:] == 0).all() and (starts["state"][1, robot:] != 0).any()
-    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), deterministic=True), reference,
+    env = ImaginedEnv(make_world_model(model, RewardWeights(), deterministic=True), reference,
                             lambda n: starts[torch.arange(n) % 2], batch_size=2)
     check_env_specs(env)
     actions = torch.rand(2, 2, 4) * 2 - 1

@@ -9,7 +9,7 @@ from torchrl.envs.utils import check_env_specs
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.polynomial_chaos import Basis, PolynomialChaos, UniformInputs, sparse_least_squares
-from unipolicy_rl.world_models import ClosedFormTrainer, ImaginedWalkerEnv, SparsePCEDynamics, make_world_model
+from unipolicy_rl.world_models import ClosedFormTrainer, ImaginedEnv, SparsePCEDynamics, make_world_model
 from unipolicy_rl.world_models.trainer import EPISODE_START
 
 LOW = torch.tensor([0.15, 0.4, -1.0, -2.0], dtype=torch.float64)
@@ -211,7 +211,7 @@ def test_the_sparse_pces_imagined_env_passes_torchrls_checks():
     ClosedFormTrainer().fit(model, data, torch.Generator().manual_seed(0))
     assert int(model.fitted_terms) >= 1
     reference = BatchedWalkerEnv(1, full_state=True)
-    imagined = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference,
+    imagined = ImaginedEnv(make_world_model(model, RewardWeights()), reference,
                                  lambda n: data[torch.randint(data.batch_size[0], (n,))].select("state", "design"),
                                  batch_size=6)
     check_env_specs(imagined)

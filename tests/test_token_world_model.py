@@ -25,7 +25,7 @@ from unipolicy_rl.envs.tokens import (
 from unipolicy_rl.token_networks import TokenTransformerSettings, make_token_transformer_actor
 from unipolicy_rl.world_models import (
     Dynamics,
-    ImaginedWalkerEnv,
+    ImaginedEnv,
     ModelTrainer,
     TokenEnsemble,
     TokenLayout,
@@ -142,11 +142,11 @@ def test_padding_changes_neither_a_robots_prediction_nor_its_loss():
     assert torch.isfinite(in_batch).all()
 
 
-def imagined_env(model: TokenEnsemble, batch_size: int = 5) -> tuple[ImaginedWalkerEnv, MorphologyWalkerEnv]:
+def imagined_env(model: TokenEnsemble, batch_size: int = 5) -> tuple[ImaginedEnv, MorphologyWalkerEnv]:
     reference = MorphologyWalkerEnv(1, SET, max_links=MAX_LINKS)
     reference.close()  # only its specs are read
     pool = buffered(0).select("state", "design", *LAYOUT.build_keys)
-    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference,
+    env = ImaginedEnv(make_world_model(model, RewardWeights()), reference,
                             lambda n: pool[torch.randint(len(pool), (n,))], batch_size=batch_size)
     return env, reference
 

@@ -24,7 +24,7 @@ from unipolicy_rl.world_models import (
     CellEnsemble,
     Dynamics,
     GaussianEnsemble,
-    ImaginedWalkerEnv,
+    ImaginedEnv,
     ModelTrainer,
     PendingFit,
     StateLayout,
@@ -307,7 +307,7 @@ def _starts(data):
 def test_imagined_env_passes_torchrls_checks_and_rolls_a_policy_for_the_horizon():
     model, data = _trained_model()
     reference = BatchedWalkerEnv(1, full_state=True)
-    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=6)
+    env = ImaginedEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=6)
     check_env_specs(env)
     policy = make_actor(18, 4)
     rollout = env.rollout(12, policy, break_when_any_done=False)
@@ -327,7 +327,7 @@ def test_a_diverging_model_ends_the_trajectory_without_poisoning_the_batch():
     with torch.no_grad():
         model.network[-1].bias[:, :, 0] = float("nan")  # every prediction of x is NaN
     reference = BatchedWalkerEnv(1, full_state=True)
-    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=4)
+    env = ImaginedEnv(make_world_model(model, RewardWeights()), reference, _starts(data), batch_size=4)
     rollout = env.rollout(5, break_when_any_done=False)
     reference.close()
     assert rollout["next", "physics_fault"].all() and rollout["next", "truncated"].all()
@@ -634,7 +634,7 @@ def test_a_row_assigned_a_member_keeps_it_after_its_fault():
     reference.close()
     starts = _starts(data)(3)
     members = torch.tensor([0, 1, 2])
-    env = ImaginedWalkerEnv(make_world_model(model, RewardWeights(), deterministic=True), reference,
+    env = ImaginedEnv(make_world_model(model, RewardWeights(), deterministic=True), reference,
                             lambda k: starts[torch.arange(k) % 3], batch_size=3, members=members)
     rollout = env.rollout(4, make_actor(18, 4), break_when_any_done=False)
     assert rollout["next", "physics_fault"][1].all() and not rollout["next", "physics_fault"][[0, 2]].any()

@@ -149,7 +149,6 @@ class WorldModelParts:
 def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
     """``world_model`` (model and trainer) and ``imagination`` (settings and stopping rule) of a model source."""
     model = make_dynamics_model(cfg, action_dim)
-    layout = model.layout
     settings = instantiate(cfg.imagination)
     env_class, kwargs = env_builder(cfg)
     if env_class is BatchedWalkerEnv:
@@ -158,8 +157,7 @@ def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
     reference_env.close()  # only its specs are read
     imagination = Imagination(model, reference_env, instantiate(cfg.robot.reward), settings, cfg.seed,
                               cfg.robot.episode_length)
-    buffer = TransitionBuffer(settings.buffer_capacity, layout.from_full, model.memory_of, layout.state_key,
-                              layout.build_keys)
+    buffer = TransitionBuffer.for_model(settings.buffer_capacity, model)
     trainer = instantiate(cfg.world_model.trainer)
     if settings.background_fit:
         check_background_fit(trainer)

@@ -5,7 +5,7 @@
 
 A robot that stands (the split's filter) can still blow up once driven: a light distal link
 flailing under its motor's torque reaches tens of m/s, the observation passes the explosion
-limit (``unipolicy_rl.envs.simulation.EXPLOSION_LIMIT``) and the env ends the episode as a
+limit (``unipolicy_rl.envs.limits.EXPLOSION_LIMIT``) and the env ends the episode as a
 physics fault. A policy cannot learn where most episodes end so (a specialist on such a robot
 faulted in every episode and learned nothing, docs/grammar.md), so this measures it before any
 training: the first ``--count`` morphologies of ``--side`` (the ones a study's specialists use),

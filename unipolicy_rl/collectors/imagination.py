@@ -32,7 +32,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from unipolicy_rl.collectors.real import IMAGINED, label, truncate_last_step
 from unipolicy_rl.collectors.replay import COLLECTED_IN
-from unipolicy_rl.envs.reward import RewardWeights
+from unipolicy_rl.envs.limits import EXPLOSION_LIMIT
 from unipolicy_rl.objectives.adaptive_kl import AdaptiveKL
 from unipolicy_rl.seeding import IMAGINATION, epoch_seed
 from unipolicy_rl.world_models.disagreement import (
@@ -43,7 +43,14 @@ from unipolicy_rl.world_models.disagreement import (
     check_threshold,
 )
 from unipolicy_rl.world_models.dynamics import Dynamics
-from unipolicy_rl.world_models.imagined import ImaginedWalkerEnv, make_world_model, member_returns
+from unipolicy_rl.world_models.imagined import (
+    ImaginedEnv,
+    Reward,
+    Termination,
+    context_keys,
+    make_world_model,
+    member_returns,
+)
 from unipolicy_rl.world_models.trainer import EPISODE_START
 
 ROLLOUTS = ("branch", "episode")
@@ -217,10 +224,15 @@ class Imagination:
     Args:
         model: the world model's dynamics (fitted by the loop before each epoch's imagination).
         reference_env: an env whose specs the imagined env copies (it is not stepped).
-        reward_weights: the real env's reward weights.
+        reward: the walker's ``RewardWeights``, a known reward (a TensorDict module of the real
+            env's keys) or ``"learned"`` (the model's reward head): see
+            :func:`~unipolicy_rl.world_models.make_world_model`.
         settings: imagined data per update, and the stopping rule.
         seed: the run's seed (each epoch's imagination restarts from its own seed).
         episode_length: real episode length (the ``episode`` rollout's horizon).
+        termination: None (branches end only at the horizon, a fault or the cut, truncated), a
+            known termination function, or ``"learned"``.
+        blowup_limit: a predicted state with a magnitude at or past it is a fault (truncated).
 
     Raises:
         ValueError: ``stopping.kind=metrpo`` with a model whose members cannot vote (one per
@@ -228,15 +240,17 @@ class Imagination:
             per design cell, or a single one), naming the model.
     """
 
-    def __init__(self, model: Dynamics, reference_env: EnvBase, reward_weights: RewardWeights,
-                 settings: ImaginationSettings, seed: int, episode_length: int) -> None:
+    def __init__(self, model: Dynamics, reference_env: EnvBase, reward: Reward, settings: ImaginationSettings,
+                 seed: int, episode_length: int, termination: Termination = None,
+                 blowup_limit: float = EXPLOSION_LIMIT) -> None:
         check_stopping_rule(settings.stopping, model)
         if settings.disagreement_cut is not None:
             check_members_disagree(model)
         stopping = settings.stopping
         self.model = model
         self.reference_env = reference_env
-        self.reward_weights = reward_weights
+        self.reward, self.termination, self.blowup_limit = reward, termination, blowup_limit
+        make_world_model(model, reward, termination=termination, blowup_limit=blowup_limit)  # refuses bad ones now
         self.settings = settings
         self.stopping = stopping
         self.seed = seed
@@ -269,9 +283,9 @@ class Imagination:
         cut = (None if self.settings.disagreement_cut is None else
                DisagreementCut.from_transitions(self.settings.disagreement_cut, transitions,
                                                 self.model.layout.robot_size))
-        env = ImaginedWalkerEnv(
-            make_world_model(self.model, self.reward_weights, self.settings.member_per_step,
-                             self.settings.deterministic, cut),
+        env = ImaginedEnv(
+            make_world_model(self.model, self.reward, self.settings.member_per_step, self.settings.deterministic, cut,
+                             self.termination, self.blowup_limit),
             self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
         )
         real_check = (None if self.stopping.kind != "real" else
@@ -283,7 +297,7 @@ class Imagination:
         window = self.settings.start_epochs
         if window is not None and COLLECTED_IN in pool.keys():  # (a buffer from before the key: all of it)
             pool = pool[pool.get(COLLECTED_IN) > epoch - window]
-        pool = pool.select("state", "design", *self.model.layout.build_keys)
+        pool = pool.select("state", *context_keys(self.model), *self.model.layout.build_keys)
 
         def sample(n: int) -> TensorDictBase:
             return pool[torch.randint(pool.batch_size[0], (n,))]
@@ -292,7 +306,8 @@ class Imagination:
 
     def member_returns(self, policy: TensorDictModuleBase, starts: TensorDictBase) -> torch.Tensor:
         """The deterministic policy's mean imagined return from ``starts`` under each voting member."""
-        world_model = make_world_model(self.model, self.reward_weights, deterministic=True)
+        world_model = make_world_model(self.model, self.reward, deterministic=True, termination=self.termination,
+                                       blowup_limit=self.blowup_limit)
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             return member_returns(world_model, self.reference_env, policy, starts, self.stopping.check_horizon)
 
@@ -374,7 +389,7 @@ class ImaginedEpoch:
     how many updates ran and, under ME-TRPO's rule, the fraction of members still improving
     (under the ``real`` rule: how many updates it kept, and their gain on the real batch)."""
 
-    def __init__(self, imagination: Imagination, env: ImaginedWalkerEnv, policy: TensorDictModuleBase,
+    def __init__(self, imagination: Imagination, env: ImaginedEnv, policy: TensorDictModuleBase,
                  horizon: int, check_starts: TensorDictBase, real_check: RealCheck | None = None) -> None:
         self.imagination, self.env, self.policy, self.horizon = imagination, env, policy, horizon
         self.check_starts = check_starts

@@ -14,6 +14,7 @@ import numpy as np
 import pybullet
 
 from unipolicy_rl.envs.design import Design
+from unipolicy_rl.envs.limits import healthy_rows
 from unipolicy_rl.robots import (
     DEFAULT_ACTUATED,
     RobotBody,
@@ -25,8 +26,6 @@ from unipolicy_rl.robots import (
 from unipolicy_rl.robots.urdf import JOINT_RANGE
 
 OBSERVATIONS = ("thesis", "full")
-# Positions beyond this (m) or speeds beyond this (m/s) mean the solver has blown up.
-EXPLOSION_LIMIT = 100.0
 
 
 @dataclass(frozen=True)
@@ -119,13 +118,6 @@ def joint_targets(actions: np.ndarray, action_range: float) -> np.ndarray:
     if not np.isfinite(actions).all():
         raise ValueError(f"actions must be finite, got {actions!r}")
     return action_range * np.clip(actions, -1.0, 1.0)
-
-
-def healthy_rows(observations):
-    """True for each observation (last axis) that is finite and within the explosion limit; a
-    numpy array (the real env) or a torch tensor (a world model's prediction) of the same type."""
-    # One comparison covers both: NaN and inf compare False.
-    return (abs(observations) < EXPLOSION_LIMIT).all(-1)
 
 
 def build_world(client: int, physics: PhysicsSettings, description: RobotDescription, height: float,

@@ -9,8 +9,9 @@ import numpy as np
 import pybullet
 
 from unipolicy_rl.envs.design import Design, DesignDistribution
+from unipolicy_rl.envs.limits import EXPLOSION_LIMIT
 from unipolicy_rl.envs.reward import RewardWeights, forward_displacement, mean_forward_speed, walking_reward
-from unipolicy_rl.envs.simulation import EXPLOSION_LIMIT, PhysicsSettings, RobotSettings, WalkerSimulation
+from unipolicy_rl.envs.simulation import PhysicsSettings, RobotSettings, WalkerSimulation
 
 
 def design_from_options(options: Mapping | None) -> Design | None:

@@ -117,8 +117,10 @@ class MemberDisagreement(nn.Module):
         self.outputs = int(varying.sum())
 
     @torch.no_grad()
-    def forward(self, state, action, design):
+    def forward(self, state, action, design=None):
         device = self.model.device
+        if design is None:  # a model of an env without a design
+            design = state.new_zeros(*state.shape[:-1], 0)
         predicted = member_predictions(self.model, state.to(device), action.to(device), design.to(device))
         return self.of_predictions(predicted).to(state.device)
 
@@ -131,18 +133,25 @@ class MemberDisagreement(nn.Module):
 class CutDoneHead(nn.Module):
     """The done head with the cut: a fault or a disagreement past ``threshold`` ends the branch,
     truncated, never terminated (the real robot would have walked on; the critic bootstraps).
-    ``disagreement_cut`` marks the steps the disagreement ended (a faulted step is a fault)."""
+    ``disagreement_cut`` marks the steps the disagreement ended (a faulted step is a fault). With
+    a termination (``terminated``), a step that ended the task and did not fault is terminated,
+    not cut."""
 
     def __init__(self, threshold: float) -> None:
         super().__init__()
         check_threshold(threshold)
         self.threshold = threshold
 
-    def forward(self, fault, disagreement):
+    def forward(self, fault, disagreement, terminated=None):
         # A member that blew up (a disagreement that is not finite) disagrees past any threshold.
         cut = ~(disagreement <= self.threshold) & ~fault
-        done = fault | cut
-        return done, torch.zeros_like(done), done.clone(), cut
+        if terminated is None:
+            done = fault | cut
+            return done, torch.zeros_like(done), done.clone(), cut
+        terminated = terminated.bool() & ~fault
+        cut = cut & ~terminated
+        truncated = fault | cut
+        return terminated | truncated, terminated, truncated, cut
 
 
 __all__ = [

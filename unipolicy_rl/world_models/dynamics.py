@@ -17,12 +17,28 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.layout import Layout
 from unipolicy_rl.world_models.networks import Standardizer
-from unipolicy_rl.world_models.token_layout import TokenLayout
 
-# What a model's state vector holds: one robot's bodies and joints, or a grammar robot's link tokens.
-Layout = StateLayout | TokenLayout
+# What a model may learn beside the next state, one output column each after the state's, named as
+# the replay buffer's keys: the step's reward, and whether it ended the episode (1) or not (0).
+REWARD, TERMINATED = "reward", "terminated"
+LEARNABLE = (REWARD, TERMINATED)
+
+
+def learned_outputs(model) -> tuple[str, ...]:
+    """What ``model`` learns beside the next state (:data:`LEARNABLE`; none for a model that does
+    not say, as the polynomial chaos models do not)."""
+    return tuple(getattr(model, "learned_outputs", ()))
+
+
+def check_learnable(learn) -> tuple[str, ...]:
+    """``learn`` as a tuple of :data:`LEARNABLE` names in their order, unknown or repeated names refused."""
+    names = tuple(learn)
+    unknown = [name for name in names if name not in LEARNABLE]
+    if unknown or len(set(names)) != len(names):
+        raise ValueError(f"learn must name each of {LEARNABLE} at most once, got {list(names)!r}")
+    return tuple(name for name in LEARNABLE if name in names)
 
 
 @runtime_checkable
@@ -76,6 +92,9 @@ class NeuralDynamics(nn.Module):
 
     layout: Layout
     members: int
+    # What the model learns beside the next state (:data:`LEARNABLE`): the trainer appends the
+    # transitions' columns of these names to its targets.
+    learned_outputs: tuple[str, ...] = ()
 
     def __init__(self, layout: Layout, input_size: int, target_size: int) -> None:
         super().__init__()

@@ -4,8 +4,9 @@ All are :class:`~unipolicy_rl.world_models.dynamics.NeuralDynamics`, so the trai
 model and the imagined env take any of them:
 
 * :class:`GaussianEnsemble` (``world_model=moe``, the default): what model-based RL learned
-  since the thesis (PETS, MBPO, mbrl-lib). Every member sees the design (l, rho) as an input,
-  predicts the *change* of the state from translation-invariant features, as a Gaussian with
+  since the thesis (PETS, MBPO, mbrl-lib). Every member sees the design (l, rho) as an input
+  where the env has one, predicts the *change* of the state from the layout's features
+  (translation invariant for the walker), as a Gaussian with
   a learned, softly bounded log-variance (trained by Gaussian NLL); the best members on
   validation data are the elites, and imagined trajectories draw their member from them.
 * :class:`CellEnsemble` (``world_model=moe_thesis``): the thesis' model ensemble (section
@@ -27,8 +28,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from unipolicy_rl.world_models.dynamics import NeuralDynamics
-from unipolicy_rl.world_models.layout import StateLayout
+from unipolicy_rl.world_models.dynamics import TERMINATED, NeuralDynamics, check_learnable
+from unipolicy_rl.world_models.layout import Layout, StateLayout
 from unipolicy_rl.world_models.networks import EnsembleMLP
 
 
@@ -53,6 +54,15 @@ def run_members(network: nn.Module, x: torch.Tensor, member: torch.Tensor) -> to
     result = out.new_empty(member.numel(), *out.shape[2:])
     result[order] = out[sorted_member, slot]
     return result
+
+
+def check_design_grid(layout: Layout, model: str) -> None:
+    """Refuses, by name, a model whose members are cells of a grid over the design (l, rho) for a
+    layout without that design (a plain env's)."""
+    if layout.design_size != 2:
+        raise ValueError(f"{model} keeps one member per cell of a grid over the design (l, rho), but the layout "
+                         f"{type(layout).__name__} has {layout.design_size} design numbers: use a GaussianEnsemble "
+                         f"or a PCEDynamics for an env without a design")
 
 
 class ProbabilisticEnsemble(NeuralDynamics):
@@ -119,24 +129,33 @@ class ProbabilisticEnsemble(NeuralDynamics):
 
 
 class GaussianEnsemble(ProbabilisticEnsemble):
-    """Probabilistic ensemble of design-conditioned state-change predictors (PETS/MBPO style).
+    """Probabilistic ensemble of state-change predictors (PETS/MBPO style), conditioned on the
+    design where the layout has one; optionally with heads for the reward and the termination.
 
     Args:
         layout: the state the model predicts.
         action_dim: number of actions.
         members, elites, min_log_var, max_log_var: as :class:`ProbabilisticEnsemble`.
         hidden, activation: each member's MLP.
+        learn: what the members learn beside the state change, as more outputs of the same
+            Gaussian head (mbrl-lib's reward head): ``reward`` (the step's reward) and
+            ``terminated`` (1 where the step ended the episode; the prediction's mean above 0.5
+            ends an imagined branch, terminated). Each output is standardised on its own, so a
+            reward's scale never weighs against the state's. Empty (the walker's): none.
     """
 
-    def __init__(self, layout: StateLayout, action_dim: int, members: int = 7, elites: int = 5,
+    def __init__(self, layout: Layout, action_dim: int, members: int = 7, elites: int = 5,
                  hidden: Sequence[int] = (200, 200, 200), activation: str = "silu",
-                 min_log_var: float = -10.0, max_log_var: float = 0.5) -> None:
-        input_size = layout.feature_size + action_dim + 2
-        super().__init__(layout, input_size, layout.size, members, elites, min_log_var, max_log_var)
-        self.network = EnsembleMLP(members, input_size, 2 * layout.size, tuple(hidden), activation)
+                 min_log_var: float = -10.0, max_log_var: float = 0.5, learn: Sequence[str] = ()) -> None:
+        learned = check_learnable(learn)
+        input_size = layout.feature_size + action_dim + layout.design_size
+        outputs = layout.size + len(learned)
+        super().__init__(layout, input_size, outputs, members, elites, min_log_var, max_log_var)
+        self.learned_outputs = learned
+        self.network = EnsembleMLP(members, input_size, 2 * outputs, tuple(hidden), activation)
 
     def inputs(self, state, action, design):
-        return torch.cat([self.layout.features(state), action.clamp(-1.0, 1.0), design], dim=-1)
+        return torch.cat([self.layout.features(state), self.layout.scaled_action(action), design], dim=-1)
 
     def targets(self, state, next_state):
         return next_state - state
@@ -151,10 +170,27 @@ class GaussianEnsemble(ProbabilisticEnsemble):
 
     @torch.no_grad()
     def predict(self, state, action, design, member, deterministic=False):
+        return self.predict_outputs(state, action, design, member, deterministic)[0]
+
+    @torch.no_grad()
+    def predict_outputs(self, state, action, design, member, deterministic=False):
+        """``(next state, learned [..., len(learned_outputs)])`` of every row, by its ``member``.
+
+        The learned outputs are drawn as the state is (with the member's noise unless
+        ``deterministic``), but for ``terminated``: its mean, the probability's estimate, so a
+        branch never ends on noise."""
         x = self.input_norm(self.inputs(state, action, design))
         mean, log_var = self.mean_and_log_var(run_members(self.network, x.reshape(-1, x.shape[-1]), member))
-        change = self.sample_change(mean, log_var, deterministic)
-        return state + self.target_norm.inverse(change).reshape(state.shape)
+        out = self.target_norm.inverse(self.sample_change(mean, log_var, deterministic))
+        size = self.layout.size
+        next_state = state + out[..., :size].reshape(state.shape)
+        learned = out[..., size:]
+        if TERMINATED in self.learned_outputs:
+            column = size + self.learned_outputs.index(TERMINATED)
+            learned = learned.clone()
+            norm = self.target_norm
+            learned[..., column - size] = mean[..., column] * norm.std[column] + norm.mean[column]
+        return next_state, learned.reshape(*state.shape[:-1], len(self.learned_outputs))
 
 
 class CellEnsemble(NeuralDynamics):
@@ -173,7 +209,8 @@ class CellEnsemble(NeuralDynamics):
                  activation: str = "relu") -> None:
         if not (isinstance(divisions, int) and divisions >= 1):
             raise ValueError(f"divisions must be a positive integer, got {divisions!r}")
-        input_size = layout.size + action_dim + 2
+        check_design_grid(layout, type(self).__name__)
+        input_size = layout.size + action_dim + layout.design_size
         super().__init__(layout, input_size, layout.size)
         self.members = divisions**2
         self.divisions = divisions
@@ -185,7 +222,7 @@ class CellEnsemble(NeuralDynamics):
         self.velocity_network = EnsembleMLP(self.members, input_size, len(layout.velocity_columns), hidden, activation)
 
     def inputs(self, state, action, design):
-        return torch.cat([state, action.clamp(-1.0, 1.0), design], dim=-1)
+        return torch.cat([state, self.layout.scaled_action(action), design], dim=-1)
 
     def targets(self, state, next_state):
         return next_state

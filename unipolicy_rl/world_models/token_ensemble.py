@@ -143,7 +143,8 @@ class TokenEnsemble(ProbabilisticEnsemble):
         root[..., 0, :] = 1.0
         driven = driven_tokens(tokens).unsqueeze(-1)
         # Slots whose joint is not driven may hold anything (NaN too): they act on nothing.
-        joint_action = torch.where(driven, action[..., :used].unsqueeze(-1).clamp(-1.0, 1.0), torch.zeros_like(root))
+        joint_action = self.layout.scaled_action(action[..., :used].unsqueeze(-1))
+        joint_action = torch.where(driven, joint_action, torch.zeros_like(root))
         link_design = design.to(tokens.dtype).unsqueeze(-2).expand(*tokens.shape[:-1], 2)
         real = real_tokens(tokens).unsqueeze(-1).to(tokens.dtype)
         return torch.cat([features, root, joint_action, link_design, real], dim=-1)

@@ -29,19 +29,21 @@ from typing import ClassVar
 import torch
 
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY, TOKEN_MASK, TOKEN_PARENT, TOKEN_SIZE, TOKENS
+from unipolicy_rl.world_models.layout import Layout
 
 # ``world_model.model_state`` of a model of link tokens (the vertebrate's are ``full`` and ``thesis``).
 TOKEN_STATE = "tokens"
 
 
 @dataclass(frozen=True)
-class TokenLayout:
+class TokenLayout(Layout):
     """``max_links`` link tokens of :data:`~unipolicy_rl.envs.tokens.TOKEN_SIZE` features, flattened."""
 
     state_key: ClassVar[str] = TOKENS
     observation_key: ClassVar[str] = TOKENS
     build_keys: ClassVar[tuple[str, ...]] = (TOKEN_MASK, TOKEN_PARENT, ACTION_MASK, MORPHOLOGY)
     memory_size: ClassVar[int] = 0
+    design_size: ClassVar[int] = 2  # every model takes the robot's (l, rho)
 
     max_links: int
 

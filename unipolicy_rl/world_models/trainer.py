@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 
 from unipolicy_rl.cpu_speed.fused_adam import adam
-from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics
+from unipolicy_rl.world_models.dynamics import Dynamics, NeuralDynamics, learned_outputs
 
 # Keys of a transition batch (one real step each), as the replay buffer stores them.
 TRANSITION_KEYS = ("state", "action", "design", "next_state")
@@ -188,7 +188,7 @@ class ModelTrainer:
         device = model.device
         state, action, design, next_state = (transitions.get(key).float().to(device) for key in TRANSITION_KEYS)
         inputs = model.inputs(state, action, design)
-        targets = model.targets(state, next_state)
+        targets = learned_targets(model, model.targets(state, next_state), transitions)
         model.fit_normalizers(inputs[train], targets[train])
         with torch.no_grad():
             x, y = model.input_norm(inputs), model.target_norm(targets)
@@ -250,6 +250,20 @@ class ModelTrainer:
         return FitReport(epochs_run, train_loss, best_error.cpu(), model.elite_members, int((~has_data).sum()),
                          time.perf_counter() - started,
                          extras={"fit_steps": float(steps), "fit_bfloat16": float(dtype is torch.bfloat16)})
+
+
+def learned_targets(model: NeuralDynamics, targets: torch.Tensor, transitions: TensorDictBase) -> torch.Tensor:
+    """``targets`` with a column per output the model learns beside the state (its
+    ``learned_outputs``: the transitions' ``reward``, ``terminated``), in that order."""
+    names = learned_outputs(model)
+    if not names:
+        return targets
+    missing = [name for name in names if name not in transitions.keys()]
+    if missing:
+        raise ValueError(f"{type(model).__name__} learns {list(names)} but the transitions hold no {missing}: "
+                         f"keep them in the replay buffer (TransitionBuffer.for_model)")
+    columns = [transitions.get(name).reshape(-1, 1).to(targets) for name in names]
+    return torch.cat([targets, *columns], dim=-1)
 
 
 def _minibatches(train_sets: list[torch.Tensor], batch_size: int, epochs: int,

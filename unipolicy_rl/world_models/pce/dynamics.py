@@ -23,8 +23,9 @@ from torch import nn
 from unipolicy_rl.polynomial_chaos.basis import Basis, multi_indices
 from unipolicy_rl.polynomial_chaos.regression import solve_normal_equations
 from unipolicy_rl.polynomial_chaos.sensitivity import SobolIndices, sobol_indices
+from unipolicy_rl.world_models.episodes import episode_starts
 from unipolicy_rl.world_models.layout import StateLayout
-from unipolicy_rl.world_models.pce.lags import LagMemory, check_lags, episode_starts
+from unipolicy_rl.world_models.pce.lags import LagMemory, check_lags
 from unipolicy_rl.world_models.trainer import EPISODE_START, TRANSITION_KEYS, FitReport
 
 #: Bootstrap groups of whole episodes at most: enough resolution for the members to differ as the
@@ -168,8 +169,9 @@ class PCEDynamics(nn.Module):
         lag_memory = LagMemory(lags, layout.robot_size, action_dim)
         if lags:
             layout = replace(layout, memory_size=lag_memory.size)
-        # Inputs: the state's features, the actions, (l, rho), then the lagged changes and actions.
-        input_size = layout.feature_size + action_dim + 2 + lag_memory.size
+        # Inputs: the state's features, the actions, the design (l, rho) where the layout has one,
+        # then the lagged changes and actions.
+        input_size = layout.feature_size + action_dim + layout.design_size + lag_memory.size
         super().__init__()
         self.layout = layout
         self.lag_memory = lag_memory
@@ -177,7 +179,7 @@ class PCEDynamics(nn.Module):
         if interactions == "controls":
             # The lagged inputs are state (what the robot did), not controls.
             controls = torch.zeros(input_size, dtype=torch.bool, device="cpu")
-            controls[layout.feature_size:layout.feature_size + action_dim + 2] = True
+            controls[layout.feature_size:layout.feature_size + action_dim + layout.design_size] = True
             active = indices > 0
             indices = indices[(active.sum(1) <= 1) | (active & controls).any(1)]
         self.basis = Basis(indices)
@@ -233,12 +235,13 @@ class PCEDynamics(nn.Module):
         if not self.lag_memory.lags:
             return None
         robot = self.layout.robot_size
-        state, next_state = (self.layout.from_full(batch.get(key))[..., :robot].float()
-                             for key in ("state", ("next", "state")))
-        return self.lag_memory.of_episodes(state, batch.get("action").float(), next_state, episode_starts(batch))
+        key = self.layout.state_key
+        state, next_state = (self.layout.from_full(batch.get(k))[..., :robot].float() for k in (key, ("next", key)))
+        action = self.layout.scaled_action(batch.get("action").float())
+        return self.lag_memory.of_episodes(state, action, next_state, episode_starts(batch))
 
     def inputs(self, state, action, design):
-        inputs = [self.layout.features(state), action.clamp(-1.0, 1.0), design.to(state.dtype)]
+        inputs = [self.layout.features(state), self.layout.scaled_action(action), design.to(state.dtype)]
         if self.lag_memory.lags:
             inputs.append(state[..., self.layout.robot_size:])
         return torch.cat(inputs, dim=-1)
@@ -281,7 +284,8 @@ class PCEDynamics(nn.Module):
         next_state = torch.maximum(torch.minimum(next_state, self.state_high), self.state_low)
         if not self.lag_memory.lags:
             return next_state
-        memory = self.lag_memory.after_step(state[..., robot:], next_state - state[..., :robot], action)
+        memory = self.lag_memory.after_step(state[..., robot:], next_state - state[..., :robot],
+                                            self.layout.scaled_action(action))
         return torch.cat([next_state, memory], dim=-1)
 
     @torch.no_grad()
@@ -339,7 +343,8 @@ class PCEDynamics(nn.Module):
         """A name per input of the expansion: the state features, ``action<j>``, ``l``, ``rho``, then
         the lagged changes and actions (:meth:`LagMemory.names`)."""
         features = self.layout.feature_names(body_names)
-        return [*features, *(f"action{j}" for j in range(self.lag_memory.action_dim)), "l", "rho",
+        design = ("l", "rho")[:self.layout.design_size]
+        return [*features, *(f"action{j}" for j in range(self.lag_memory.action_dim)), *design,
                 *self.lag_memory.names(self.layout.state_names(body_names))]
 
     @torch.no_grad()

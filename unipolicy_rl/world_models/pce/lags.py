@@ -85,14 +85,3 @@ class LagMemory:
         return [name for k in range(1, self.lags + 1)
                 for name in [*(f"{s}.change@t-{k}" for s in state_names),
                              *(f"action{j}@t-{k}" for j in range(self.action_dim))]]
-
-
-def episode_starts(batch) -> torch.Tensor:
-    """``[rows, steps]`` True where a step of a real batch begins an episode: each row's first
-    step, and every step after one that ended (``("next", "done")``) where the batch says so."""
-    shape = batch.batch_size
-    starts = torch.zeros(shape, dtype=torch.bool)
-    starts[..., 0] = True
-    if ("next", "done") in batch.keys(include_nested=True):
-        starts[..., 1:] |= batch.get(("next", "done")).reshape(shape)[..., :-1].bool().cpu()
-    return starts

@@ -31,6 +31,7 @@ from torch import nn
 
 from unipolicy_rl.polynomial_chaos.basis import Basis
 from unipolicy_rl.polynomial_chaos.thesis import ThesisMEPCE, pack_by_element
+from unipolicy_rl.world_models.ensemble import check_design_grid
 from unipolicy_rl.world_models.layout import StateLayout
 from unipolicy_rl.world_models.pce.dynamics import drop_unused_standardizers
 from unipolicy_rl.world_models.trainer import TRANSITION_KEYS, FitReport
@@ -64,6 +65,7 @@ class ThesisPCEDynamics(nn.Module):
             raise ValueError(f"horizon must be a positive integer (steps per episode), got {horizon!r}")
         if not ridge >= 0:
             raise ValueError(f"ridge must be >= 0, got {ridge!r}")
+        check_design_grid(layout, type(self).__name__)
         pce = ThesisMEPCE(length_range, density_range, action_dim, order, truncation, q, divisions, window,
                           reduction="none", ridge=ridge)
         layout = replace(layout, memory_size=1 + action_dim * (window - 1))
@@ -92,7 +94,7 @@ class ThesisPCEDynamics(nn.Module):
     def memory_of(self, batch):
         """Step and last ``window - 1`` actions before and after each step of whole episodes ``[robots, steps]``
         (actions before the episode start are zeros, as in the expansion)."""
-        actions = batch.get("action").clamp(-1.0, 1.0).float()
+        actions = self.layout.scaled_action(batch.get("action")).float()
         robots, steps = actions.shape[:2]
         padded = torch.cat([actions.new_zeros(robots, self.window - 1, self.action_dim), actions], dim=1)
         # windows[:, s] = actions s - T + 1 .. s (the last T - 1 before step s, then the one at s)
@@ -107,7 +109,7 @@ class ThesisPCEDynamics(nn.Module):
         robot = self.layout.robot_size
         step = state[..., robot].round().long().clamp(0, self.horizon - 1)
         past = state[..., robot + 1:].unflatten(-1, (self.window - 1, self.action_dim))
-        return step, torch.cat([past, action.clamp(-1.0, 1.0).unsqueeze(-2).to(past.dtype)], dim=-2)
+        return step, torch.cat([past, self.layout.scaled_action(action).unsqueeze(-2).to(past.dtype)], dim=-2)
 
     def _inputs(self, design: torch.Tensor, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each row's element and its PCE input (design within the element, then the window), in [-1, 1]."""
