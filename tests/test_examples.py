@@ -34,3 +34,14 @@ def test_the_mbpo_example_runs_its_loop(monkeypatch, capsys):
     assert all(math.isfinite(float(line.split("critic loss ")[1])) for line in lines)
     # one batch of imagination.steps_per_batch (2,000) model transitions per fit, whatever the horizon
     assert [int(line.split(" model transitions")[0].split(", ")[-1]) for line in lines] == [2000, 4000]
+
+
+def test_the_own_env_example_runs_me_trpo_on_pendulum_with_a_known_and_a_learned_reward(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["own_env_pendulum.py", "--quick"])
+    runpy.run_path(str(EXAMPLES / "own_env_pendulum.py"), run_name="__main__")
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("epoch ")]
+    assert [line.split(",")[0] for line in lines] == ["epoch 1: known reward", "epoch 2: known reward",
+                                                      "epoch 1: learned reward", "epoch 2: learned reward"]
+    assert [int(line.split("real steps ")[1].split(",")[0]) for line in lines] == [200, 400, 200, 400]
+    # Pendulum's return lies in [-16.3 * 200, 0] per episode.
+    assert all(-3300 < float(line.split("return ")[1].split(",")[0]) <= 0 for line in lines)
