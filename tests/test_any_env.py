@@ -266,3 +266,25 @@ def test_models_of_design_cells_refuse_an_env_without_a_design():
         CellEnsemble(layout, 1, (0.1, 0.2), (0.5, 1.5))
     with pytest.raises(ValueError, match="ThesisPCEDynamics keeps one member per cell"):
         ThesisPCEDynamics(layout, 1, (0.1, 0.2), (0.5, 1.5))
+
+
+@pytest.mark.parametrize("reward", ["known", LEARNED])
+def test_the_disagreement_cut_and_the_fresh_error_work_on_a_plain_env(reward):
+    from unipolicy_rl.networks import make_actor
+    from unipolicy_rl.world_models.fresh_error import fresh_error
+
+    env, batch = real_batch(400)
+    learn = ["reward"] if reward == LEARNED else []
+    model = GaussianEnsemble(FlatLayout.from_env(env), 1, members=3, elites=2, hidden=(16,), learn=learn)
+    buffer = TransitionBuffer.for_model(10_000, model)
+    fresh = buffer.extend(batch, epoch=1)
+    ModelTrainer(max_epochs=2).fit(model, buffer.contents(), torch.Generator().manual_seed(0))
+    assert all(math.isfinite(value) for value in fresh_error(model, fresh).values())
+    # A tiny threshold: (almost) every branch is cut at its first step, truncated.
+    settings = ImaginationSettings(steps_per_batch=40, deterministic=True, disagreement_cut=1e-6,
+                                   stopping=StoppingRule(kind="fixed", max_updates=1))
+    imagination = Imagination(model, env, LEARNED if reward == LEARNED else pendulum_reward(), settings, 0, 200)
+    (rollout,) = list(imagination.epoch(1, buffer.contents(), make_actor(3, 1)))
+    cut = rollout["next", "disagreement_cut"]
+    assert cut.float().mean() > 0.9
+    assert (rollout["next", "truncated"] | ~cut).all() and not rollout["next", "terminated"].any()
