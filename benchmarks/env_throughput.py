@@ -26,6 +26,7 @@ import pybullet
 import torch
 from torchrl.envs import ParallelEnv
 
+from unipolicy_rl.cpu_speed.parallel_env import SleepingParallelEnv
 from unipolicy_rl.envs import (
     BatchedWalkerEnv,
     DesignDistribution,
@@ -34,7 +35,6 @@ from unipolicy_rl.envs import (
     WalkerEnv,
     WalkerSimulation,
 )
-from unipolicy_rl.cpu_speed.parallel_env import SleepingParallelEnv
 
 DE = DesignDistribution.fixed(0.175, 0.5)
 

@@ -1,5 +1,5 @@
 """The world model's fit in float32 against bfloat16 autocast (``world_model.trainer.precision``), and Adam's
-fused kernel against its default one (``unipolicy_rl/optimizers.py``), on a run's own data.
+fused kernel against its default one (``unipolicy_rl/cpu_speed/fused_adam.py``), on a run's own data.
 
     python benchmarks/fit_precision.py <checkpoint.pt of a source=moe run> [--repeats 3] [--fresh 1000]
 
