@@ -68,12 +68,12 @@ def test_every_numeric_setting_refuses_an_invalid_value_naming_its_key(overrides
         ("epochs=-1", "epochs must be an integer >= 1, got -1"),
         ("algo.gamma=1.5", "algo.gamma must lie in (0, 1], got 1.5"),
         ("evaluation.grid=0", "evaluation.grid must be an integer >= 1, got 0"),
-        ("robot=grammar", "policy=mlp reads one robot's flat observation, but robot=grammar"),
+        ("robot=grammar policy=mlp", "policy=mlp reads one robot's flat observation, but robot=grammar"),
     ],
 )
 def test_a_bad_override_stops_train_py_before_any_robot_is_built(tmp_path, override, message):
-    result = subprocess.run([sys.executable, str(ROOT / "train.py"), override, f"hydra.run.dir={tmp_path}"],
-                            cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), *override.split(), f"hydra.run.dir={tmp_path}"],
+                            cwd=ROOT, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode != 0
     assert message in result.stderr
     assert not (tmp_path / "metrics.csv").exists()
