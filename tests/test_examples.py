@@ -45,3 +45,23 @@ def test_the_own_env_example_runs_me_trpo_on_pendulum_with_a_known_and_a_learned
     assert [int(line.split("real steps ")[1].split(",")[0]) for line in lines] == [200, 400, 200, 400]
     # Pendulum's return lies in [-16.3 * 200, 0] per episode.
     assert all(-3300 < float(line.split("return ")[1].split(",")[0]) <= 0 for line in lines)
+
+
+def test_the_env_alone_example_runs(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["env_alone.py", "--quick"])
+    runpy.run_path(str(EXAMPLES / "env_alone.py"), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "observation (18,)" in out
+    assert "batch (4, 10)" in out
+    displacement = float(out.split("forward displacement ")[1].split(" m")[0])
+    assert math.isfinite(displacement)
+
+
+def test_the_trpo_pendulum_example_runs(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["trpo_pendulum.py", "--quick"])
+    runpy.run_path(str(EXAMPLES / "trpo_pendulum.py"), run_name="__main__")
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("update ")]
+    assert [line.split(":")[0] for line in lines] == ["update 1", "update 2"]
+    for line in lines:
+        assert math.isfinite(float(line.split("episode return ")[1].split(",")[0]))
+        assert 0.0 <= float(line.split("KL ")[1]) <= 0.015  # within the trust region (max_kl 0.01, line search)

@@ -222,7 +222,7 @@ def test_the_sparse_pces_imagined_env_passes_torchrls_checks():
 @pytest.mark.parametrize(
     ("settings", "match"),
     [
-        ({"order": -1}, "order must be an integer >= 0, got -1"),
+        ({"order": -1}, "order must be an integer >= 1 .*, got -1"),
         ({"q": 2.0}, "q must lie in .* got 2.0"),
         ({"max_terms": 0}, "max_terms must be a positive integer or None, got 0"),
         ({"patience": -3}, "patience must be a positive integer, got -3"),
