@@ -270,6 +270,9 @@ def load(roots: list[Path]) -> tuple[list[Record], list[str]]:
             if run.config is None or run.source is None:
                 left_out.append(f"{run.name}: {'; '.join(run.problems) or 'no config'}")
                 continue
+            if not run.rows and run.problems:  # an unreadable metrics.csv: say why, not "no evaluation yet"
+                left_out.append(f"{run.name}: {'; '.join(run.problems)}")
+                continue
             records.append(from_run(run))
     return records, left_out
 

@@ -599,3 +599,13 @@ def test_the_holding_figures_count_the_evaluations_after_each_level_and_read_the
     text = holding.format_holding(entries)
     assert "se-trpo's final median (5.50 m / 3.50 m, at 600,000)" in text
     assert "se-moe-trpo     50,000  5.60 / 3.30 (2/2)        1/2" in text
+
+
+def test_a_run_whose_metrics_are_garbage_is_left_out_for_that_reason(tmp_path, capsys):
+    good = write_run(tmp_path, "se-trpo", "real", 0, [(0, 3.5, 1.5)], last=10_000)
+    bad = write_run(tmp_path, "se-trpo", "real", 1, [(0, 3.5, 1.5)], last=10_000)
+    (bad / "metrics.csv").write_text("\x00\x01 not a csv at all\n")
+    assert good.exists()
+    assert report.main([str(tmp_path), "--out", str(tmp_path / "out"), "--resamples", "100"]) == 0
+    stderr = capsys.readouterr().err
+    assert "se-trpo_seed1" in stderr and "unreadable" in stderr and "no periodic grid evaluation" not in stderr
