@@ -67,6 +67,7 @@ def test_a_rule_without_a_trust_region_to_shrink_is_refused(overrides, match):
         validate_config(cfg)
 
 
+@pytest.mark.slow
 def test_a_run_logs_each_epoch_s_bound_and_its_imagined_steps_keep_within_it(tmp_path):
     # A reference far below any real error: from the second epoch on the bound shrinks.
     result = run_train(*MOE_TINY, "epochs=3", "imagination.stopping.kind=fixed",

@@ -123,6 +123,7 @@ PeriodicEvaluation.__call__ = recording
 """
 
 
+@pytest.mark.slow
 def test_a_model_based_run_acts_evaluates_and_saves_with_the_average_and_resumes_it_exactly(tmp_path):
     overrides = [*MOE_TINY, "algo.policy_average.decay=0.5"]
     a, b, _ = straight_and_resumed(tmp_path, overrides, first=1, total=3)
@@ -137,6 +138,7 @@ def test_a_model_based_run_acts_evaluates_and_saves_with_the_average_and_resumes
                loaded.policy[1].state_dict().items())
 
 
+@pytest.mark.slow
 def test_the_periodic_evaluation_runs_the_average(tmp_path):
     """Its last one (after the last epoch's averaging step) evaluates the policy the checkpoint saves."""
     record = tmp_path / "record"

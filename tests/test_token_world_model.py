@@ -93,6 +93,7 @@ def test_the_model_fits_held_out_transitions_better_than_predicting_no_change():
     assert error < 0.9 * baseline
 
 
+@pytest.mark.slow
 def test_a_bfloat16_fit_of_the_token_model_learns_and_keeps_its_weights_in_float32():
     """world_model.trainer.precision=auto fits the grammar's token ensemble in bfloat16 on a CPU that
     computes in it: the token network's ops must run under autocast and still learn (a short fit

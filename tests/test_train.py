@@ -66,6 +66,7 @@ def test_config_composes_for_every_source(source, length_range):
     assert cfg.epochs == 600 and cfg.episodes_per_epoch == 10 and cfg.algo.max_kl == 0.01
 
 
+@pytest.mark.slow
 def test_the_design_space_is_written_once_and_agrees_with_the_code():
     """SE's ranges, the evaluation grid's and the library's defaults are one fact."""
     result = run_train("source=se", "--cfg", "job")
@@ -530,6 +531,7 @@ def test_metrpo_with_a_model_whose_members_are_design_cells_is_refused_by_name(t
     assert not (tmp_path / "metrics.csv").exists()
 
 
+@pytest.mark.slow
 def test_the_run_is_named_for_the_design_world_model_and_algorithm_that_ran():
     named = {overrides: OmegaConf.create(run_train(*overrides, "--cfg", "job", "--resolve").stdout).run_name
              for overrides in [("source=se",), ("source=moe", "world_model=pce"), ("source=pce", "design=de")]}

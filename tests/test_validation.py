@@ -62,13 +62,15 @@ def test_every_numeric_setting_refuses_an_invalid_value_naming_its_key(overrides
     assert not unchecked, f"settings that accept any value, with no check: {unchecked}"
 
 
+# One launch of train.py in the fast tests; the others (slow) show the same for other kinds of key.
 @pytest.mark.parametrize(
     ("override", "message"),
     [
         ("epochs=-1", "epochs must be an integer >= 1, got -1"),
-        ("algo.gamma=1.5", "algo.gamma must lie in (0, 1], got 1.5"),
-        ("evaluation.grid=0", "evaluation.grid must be an integer >= 1, got 0"),
-        ("robot=grammar policy=mlp", "policy=mlp reads one robot's flat observation, but robot=grammar"),
+        pytest.param("algo.gamma=1.5", "algo.gamma must lie in (0, 1], got 1.5", marks=pytest.mark.slow),
+        pytest.param("evaluation.grid=0", "evaluation.grid must be an integer >= 1, got 0", marks=pytest.mark.slow),
+        pytest.param("robot=grammar policy=mlp", "policy=mlp reads one robot's flat observation, but robot=grammar",
+                     marks=pytest.mark.slow),
     ],
 )
 def test_a_bad_override_stops_train_py_before_any_robot_is_built(tmp_path, override, message):
