@@ -52,6 +52,10 @@ EVAL_SECONDS = EVAL_PREFIX + "seconds"  # this evaluation's wall seconds (in tim
 # -- model-based sources -----------------------------------------------------------------
 IMAGINED_PREFIX = "imagined/"  # imagined batches' figures: never real returns
 IMAGINED_REWARD_PER_STEP = IMAGINED_PREFIX + "reward_per_step"  # mean imagined reward per step
+IMAGINED_MAX_KL = IMAGINED_PREFIX + "max_kl"  # the imagined updates' KL bound (imagination.adaptive_kl)
 MODEL_PREFIX = "model/"  # the world model's fit and surrogate accuracy
 MODEL_VALIDATION_MSE = MODEL_PREFIX + "validation_mse"  # the elites' standardised held-out error
 FRESH_ERROR = MODEL_PREFIX + "fresh_error"  # the model's error on the epoch's new real states, before its fit
+
+# -- algo.policy_average (while on) -----------------------------------------------------
+POLICY_AVERAGE_DISTANCE = "policy_average/distance"  # ||average - weights|| / ||weights||: how far the policy lags

@@ -39,13 +39,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from unipolicy_rl.learners.base import Learner, load_policy_state, policy_state
+from unipolicy_rl.metric_columns import POLICY_AVERAGE_DISTANCE
 from unipolicy_rl.observation_statistics import reexpress_networks
 from unipolicy_rl.policy import make_collecting_policy
 
 STATE_KEY = "policy_average"  # the average's weights in the learner's state_dict
-# Relative distance of the average's weights from the learner's after a step, ||avg - w|| / ||w||:
-# how far the acting policy lags the learning one (a column of metrics.csv while averaging).
-DISTANCE = "policy_average/distance"
+DISTANCE = POLICY_AVERAGE_DISTANCE  # (metrics.csv's column, while averaging)
 
 
 def check_decay(decay) -> None:

@@ -24,8 +24,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-# The bound the epoch's imagined updates ran under (a column of metrics.csv while the rule is on).
-IMAGINED_MAX_KL = "imagined/max_kl"
+from unipolicy_rl.metric_columns import IMAGINED_MAX_KL
 
 
 def _positive(name: str, value) -> None:
