@@ -221,14 +221,21 @@ def test_an_ensemble_learns_pendulums_reward_beside_its_state():
     assert (state - rows["next_state"]).abs().mean() < 0.25 * (rows["next_state"] - rows["state"]).abs().mean()
 
 
-@pytest.mark.parametrize("reward", ["known", LEARNED])
-def test_imagination_and_its_metrpo_rule_run_on_a_plain_env(reward):
+def fitted_plain_model(reward: str):
+    """Pendulum's env, a small ensemble fitted on 400 of its real steps (learning the reward where
+    ``reward`` is learned) and its buffer, with the transitions it was given."""
     env, batch = real_batch(400)
     learn = ["reward"] if reward == LEARNED else []
     model = GaussianEnsemble(FlatLayout.from_env(env), 1, members=3, elites=2, hidden=(16,), learn=learn)
     buffer = TransitionBuffer.for_model(10_000, model)
-    buffer.extend(batch, epoch=1)
+    fresh = buffer.extend(batch, epoch=1)
     ModelTrainer(max_epochs=2).fit(model, buffer.contents(), torch.Generator().manual_seed(0))
+    return env, model, buffer, fresh
+
+
+@pytest.mark.parametrize("reward", ["known", LEARNED])
+def test_imagination_and_its_metrpo_rule_run_on_a_plain_env(reward):
+    env, model, buffer, _ = fitted_plain_model(reward)
     settings = ImaginationSettings(steps_per_batch=60, stopping=StoppingRule(max_updates=2, check_every=1,
                                                                             check_starts=4, check_horizon=3))
     imagination = Imagination(model, env, LEARNED if reward == LEARNED else pendulum_reward(), settings, 0, 200)
@@ -273,12 +280,7 @@ def test_the_disagreement_cut_and_the_fresh_error_work_on_a_plain_env(reward):
     from unipolicy_rl.networks import make_actor
     from unipolicy_rl.world_models.fresh_error import fresh_error
 
-    env, batch = real_batch(400)
-    learn = ["reward"] if reward == LEARNED else []
-    model = GaussianEnsemble(FlatLayout.from_env(env), 1, members=3, elites=2, hidden=(16,), learn=learn)
-    buffer = TransitionBuffer.for_model(10_000, model)
-    fresh = buffer.extend(batch, epoch=1)
-    ModelTrainer(max_epochs=2).fit(model, buffer.contents(), torch.Generator().manual_seed(0))
+    env, model, buffer, fresh = fitted_plain_model(reward)
     assert all(math.isfinite(value) for value in fresh_error(model, fresh).values())
     # A tiny threshold: (almost) every branch is cut at its first step, truncated.
     settings = ImaginationSettings(steps_per_batch=40, deterministic=True, disagreement_cut=1e-6,
