@@ -1,7 +1,8 @@
-"""Train a universal walking policy on the real robot or on a world model fitted to it.
+"""Train a universal walking policy on the real robot or on a world model fitted to it (or any gymnasium task's).
 
     python train.py                         # SE-TRPO, thesis protocol (600 epochs x 10 episodes)
     python train.py source=moe              # SE-MOE-TRPO: the ensemble world model, 20 imagined updates per fit
+    python train.py env=gym env.id=Pendulum-v1 source=moe   # ME-TRPO on a gymnasium task
     python train.py source=de epochs=100    # any override
     python train.py -m source=de,se seed=0,1,2
     python train.py resume=outputs/se-trpo/seed0/<run>/checkpoint.pt
@@ -41,10 +42,11 @@ from unipolicy_rl.resume import named_keys, record_resumed_config, settings_for_
 from unipolicy_rl.seeding import MODEL_FIT, reseed
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
 from unipolicy_rl.training.progress import (
-    PeriodicEvaluation,
     RunLog,
+    describe_best,
     episode_metrics,
     evaluate_final,
+    make_evaluation,
     naming_the_checkpoint_on_stall,
 )
 from unipolicy_rl.validation import validate_config
@@ -89,7 +91,7 @@ def main(cfg: DictConfig) -> dict:
                                      observation_dim=observation_dim, action_dim=action_dim, learner=learner,
                                      collector=real, world=world,
                                      elapsed_before=state.get("elapsed", 0.0) if state else 0.0)
-        evaluation = PeriodicEvaluation(cfg, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
+        evaluation = make_evaluation(cfg, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
         log = RunLog(instantiate(cfg.logger), run_dir, cfg.epochs, real.epoch, cfg.run_name, cfg.progress_bar)
         tick, tick_cpu = time.perf_counter(), process_tree_cpu_seconds()
         for batch in real:
@@ -157,14 +159,17 @@ def main(cfg: DictConfig) -> dict:
 
     summary = evaluate_final(cfg, path, run_dir, cfg.run_name)
     print(f"saved policy: {path}")
-    print(f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}:")
-    print(format_summary(summary))
+    if "mean_return" in summary:  # env=gym: returns over env.evaluation_episodes episodes
+        print(f"{summary['episodes']} episodes: mean return {summary['mean_return']:.1f} (lowest "
+              f"{summary['min_return']:.1f}, highest {summary['max_return']:.1f})")
+    else:
+        print(f"design grid {cfg.evaluation.grid}x{cfg.evaluation.grid}:")
+        print(format_summary(summary))
     if "morphologies" in summary:  # robot=grammar: the grid of every evaluated morphology
         print(format_morphology_summary(summary))
     best = evaluation.best
     if best is not None:
-        print(f"best periodic evaluation: epoch {best['epoch']}, grid mean {best['grid_mean']:.2f} m, worst design "
-              f"{best['grid_min']:.2f} m; its policy: {checkpoints.best_path}")
+        print(f"best periodic evaluation: {describe_best(best)}; its policy: {checkpoints.best_path}")
     return {"epoch": real.epoch, "checkpoint": str(path), "best": best, **summary}
 
 

@@ -61,7 +61,8 @@ from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
-FINAL_EVALUATION = Path("evaluation") / "designs.csv"  # train.py's grid evaluation after the last epoch
+# train.py's evaluation after the last epoch: the walker's design grid, or a gym task's returns
+FINAL_EVALUATIONS = (Path("evaluation") / "designs.csv", Path("evaluation") / "returns.csv")
 FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
 LEVEL_CHECK_SECONDS = 30.0  # how often a running run's metrics are read for --stop-at-level
 LEVELS_BY_NAME = {level.label.strip("()"): level for level in LEVELS}  # "a", "b", "c" -> the league's level
@@ -285,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{run.entry} seed {run.seed}: level ({args.stop_at_level}) reached at {steps:,.0f} real env "
                   f"steps ({done} epochs)", flush=True)
             continue
-        if done >= run.epochs and (run.folder / FINAL_EVALUATION).is_file():
+        if done >= run.epochs and any((run.folder / name).is_file() for name in FINAL_EVALUATIONS):
             print(f"{run.entry} seed {run.seed}: done ({done} of {run.epochs} epochs)", flush=True)
             continue
         if done >= run.epochs:  # stopped during its final evaluation: a resume runs only that

@@ -40,13 +40,15 @@ from study.morphology import grammar_runs  # noqa: E402
 from unipolicy_rl.report.metrics import column, real_env_steps, training_cpu_seconds, training_seconds  # noqa: E402
 from unipolicy_rl.report.runs import COMMANDS, ReportError, Run, load_run  # noqa: E402
 from unipolicy_rl.report.runs import discover as discover_runs  # noqa: E402
-from unipolicy_rl.training.metrics_file import GRID_MEAN, GRID_MIN, GRID_WALKING  # noqa: E402
+from unipolicy_rl.training.metrics_file import EVAL_RETURN, GRID_MEAN, GRID_MIN, GRID_WALKING  # noqa: E402
 
 RECORD = "record.yaml"
 EVALUATIONS = "evaluations.csv"
 MORPHOLOGIES = "morphologies.csv"
 PERIODIC = "periodic_morphologies.csv"
-EVALUATION_COLUMNS = ("real_env_steps", "seconds", "cpu_seconds", "grid_mean", "grid_min", "walking_designs")
+# (mean_return: env=gym runs, whose evaluation is a return; records from before it lack the column)
+EVALUATION_COLUMNS = ("real_env_steps", "seconds", "cpu_seconds", "grid_mean", "grid_min", "walking_designs",
+                      "mean_return")
 MORPHOLOGY_COLUMNS = ("derivation", "side", "links", "mean_displacement", "worst_displacement")
 FIT_BFLOAT16 = "model/fit_bfloat16"  # logged by every fit of a run with precision: auto
 PERIODIC_COLUMNS = ("real_env_steps", "robot", "mean_displacement")  # robot: its row in morphologies.csv
@@ -64,6 +66,7 @@ class Evaluation:
     # load on the machine inflates far less than wall time (NaN where the run did not log it)
     cpu_seconds: float = math.nan
     walking_designs: float = math.nan  # designs of the grid that walk (NaN where not logged)
+    mean_return: float = math.nan  # env=gym: the deterministic policy's mean return (NaN on the walker)
 
 
 @dataclass(frozen=True)
@@ -107,7 +110,14 @@ class Record:
 
 # -- from a run folder ---------------------------------------------------------------
 def run_evaluations(run: Run) -> list[Evaluation]:
-    """The run's periodic grid evaluations (rows with a grid mean and worst design), in order."""
+    """The run's periodic grid evaluations (rows with a grid mean and worst design), in order; a gym
+    task's (rows with a mean return)."""
+    if run.rows and EVAL_RETURN in run.columns:
+        returns, steps = column(run, EVAL_RETURN), real_env_steps(run)
+        seconds, cpu = training_seconds(run), training_cpu_seconds(run)
+        return [Evaluation(float(steps[i]), float(seconds[i]), math.nan, math.nan, float(cpu[i]),
+                           mean_return=float(returns[i]))
+                for i in range(len(run.rows)) if math.isfinite(returns[i])]
     if not run.rows or GRID_MEAN not in run.columns or GRID_MIN not in run.columns:
         return []
     means, mins, walking = column(run, GRID_MEAN), column(run, GRID_MIN), column(run, GRID_WALKING)
@@ -196,7 +206,7 @@ def write(record: Record, folder: Path) -> Path:
         writer.writerow(EVALUATION_COLUMNS)
         for e in record.evaluations:
             writer.writerow([_cell(value) for value in (e.steps, e.seconds, e.cpu_seconds, e.grid_mean, e.grid_min,
-                                                        e.walking_designs)])
+                                                        e.walking_designs, e.mean_return)])
     if record.grammar is not None:
         index = {robot.derivation: i for i, robot in enumerate(record.robots)}
         with (folder / MORPHOLOGIES).open("w", newline="") as file:
@@ -219,7 +229,8 @@ def read(folder: Path, name: str) -> Record:
     with (folder / EVALUATIONS).open(newline="") as file:
         rows = list(csv.DictReader(file))
     evaluations = [Evaluation(_number(row["real_env_steps"]), _number(row["seconds"]), _number(row["grid_mean"]),
-                              _number(row["grid_min"]), _number(row["cpu_seconds"]), _number(row["walking_designs"]))
+                              _number(row["grid_min"]), _number(row["cpu_seconds"]), _number(row["walking_designs"]),
+                              _number(row.get("mean_return", "")))
                    for row in rows]
     commands = folder / COMMANDS
     record = Record(name=name, entry=head["entry"], seed=head["seed"], model_free=head["model_free"],

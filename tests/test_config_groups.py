@@ -44,7 +44,7 @@ def every_option() -> list[str]:
 
 def test_every_group_of_conf_is_listed_with_its_options():
     groups = {option.split("=")[0] for option in every_option()}
-    assert groups == {"algo", "design", "imagination", "logger", "policy", "robot", "source", "world_model"}
+    assert groups == {"algo", "design", "env", "imagination", "logger", "policy", "robot", "source", "world_model"}
     assert set(COMPANIONS) <= set(every_option())  # a companion for an option that went is stale
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, RewardSum, TransformedEnv
@@ -28,8 +29,9 @@ from unipolicy_rl.collectors import (
     truncate_last_step,
 )
 from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
-from unipolicy_rl.envs import BatchedWalkerEnv
-from unipolicy_rl.envs.config import env_builder, morphology_env_kwargs
+from unipolicy_rl.envs import BatchedWalkerEnv, MorphologyWalkerEnv
+from unipolicy_rl.envs.config import env_builder, episode_length, frames_per_epoch, morphology_env_kwargs
+from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, world_model_reward, world_model_termination
 from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, TRPOLearner
 from unipolicy_rl.learners.distillation import DistillationLearner, SpecialistTeachers
@@ -73,7 +75,16 @@ def training_env(num_robots: int, ignore_signals: bool = False, env_class: type[
     if ignore_signals:
         for number in (signal.SIGINT, signal.SIGTERM):
             signal.signal(number, signal.SIG_IGN)
-    return TransformedEnv(env_class(num_robots, **kwargs), RewardSum())
+    env = env_class(num_robots, **kwargs)
+    if isinstance(env, TransformedEnv):  # a gym task's env, already transformed: one more transform
+        env.append_transform(RewardSum())
+        return env
+    return TransformedEnv(env, RewardSum())
+
+
+def one_env_epoch(batch: TensorDictBase) -> TensorDictBase:
+    """A gym task's epoch, ``[steps]``, as ``[1, steps]`` with its last step truncated."""
+    return truncate_last_step(batch.unsqueeze(0))
 
 
 def robots_per_worker(cfg: DictConfig) -> int:
@@ -103,9 +114,17 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``, whose
     link tokens already hold every link's state (a world model reads them; ``full_state`` adds
     nothing there).
+
+    For ``env=gym`` the epoch is ``env.frames_per_epoch`` steps of one gymnasium env, in this
+    process, its episodes ending at the task's own time limit or termination; the batch is
+    ``[1, steps]``, shaped as a walker's ``[robots, steps]``.
     """
-    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
+    frames_per_batch = frames_per_epoch(cfg)
     env_class, kwargs = env_builder(cfg)
+    if env_kind(cfg) == GYM:
+        return Collector(functools.partial(training_env, 1, env_class=env_class, **kwargs), policy,
+                         frames_per_batch=frames_per_batch, total_frames=frames_per_batch * max(epochs, 1),
+                         postproc=one_env_epoch, auto_register_policy_transforms=False)
     kwargs = {**kwargs, "episode_length": None}
     if env_class is BatchedWalkerEnv:
         kwargs["full_state"] = full_state
@@ -129,7 +148,7 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
 def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool) -> RealEpochCollector:
     """Real epochs of whole episodes, reseeded per epoch; ``full_state`` adds the robots' full
     state to every step (what a world model fits on)."""
-    frames_per_batch = cfg.episodes_per_epoch * cfg.robot.episode_length
+    frames_per_batch = frames_per_epoch(cfg)
     return RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=full_state), cfg.seed, cfg.epochs,
                               frames_per_batch)
 
@@ -155,8 +174,13 @@ def make_world_model_parts(cfg: DictConfig, action_dim: int) -> WorldModelParts:
         kwargs["full_state"] = True
     reference_env = env_class(1, **kwargs)
     reference_env.close()  # only its specs are read
-    imagination = Imagination(model, reference_env, instantiate(cfg.robot.reward), settings, cfg.seed,
-                              cfg.robot.episode_length)
+    if env_kind(cfg) == GYM:  # the task's known reward and termination, or the model's learned heads
+        task = gym_task(cfg)
+        reward, termination = world_model_reward(task), world_model_termination(task)
+    else:
+        reward, termination = instantiate(cfg.robot.reward), None
+    imagination = Imagination(model, reference_env, reward, settings, cfg.seed, episode_length(cfg),
+                              termination=termination)
     buffer = TransitionBuffer.for_model(settings.buffer_capacity, model)
     trainer = instantiate(cfg.world_model.trainer)
     if settings.background_fit:
@@ -252,12 +276,12 @@ def make_learner(cfg: DictConfig, observation_dim: int, action_dim: int) -> Lear
 
 def probe_dimensions(cfg: DictConfig) -> tuple[int, int]:
     """The policy's sizes for the configured robot (one robot built and closed): the flat
-    observation and action sizes of the vertebrate, or for ``robot=grammar`` the features per
+    observation and action sizes of the vertebrate or of a gym task, or for ``robot=grammar`` the features per
     link token ``F`` and the padded number of tokens ``L`` (one action slot per token). A
     checkpoint keeps them as ``observation_dim`` and ``action_dim``."""
     env_class, kwargs = env_builder(cfg)
     probe = env_class(1, **kwargs)
-    if env_class is BatchedWalkerEnv:
+    if env_class is not MorphologyWalkerEnv:
         dims = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
     else:
         dims = tuple(probe.observation_spec[TOKENS].shape[-2:])[::-1]

@@ -44,6 +44,9 @@ GRID_REWARD = EVAL_PREFIX + "grid_mean_reward"  # mean episode reward over the g
 # robot=grammar: the columns above are over every (morphology, design) cell; these per morphology.
 WALKING_MORPHOLOGIES = EVAL_PREFIX + "walking_morphologies"  # morphologies whose own grid mean walks
 WORST_MORPHOLOGY_MEAN = EVAL_PREFIX + "worst_morphology_mean_displacement"  # the lowest morphology grid mean (m)
+# env=gym: the deterministic policy's returns over env.evaluation_episodes real episodes.
+EVAL_RETURN = EVAL_PREFIX + "mean_return"  # their mean return
+EVAL_MIN_RETURN = EVAL_PREFIX + "min_return"  # the lowest of them
 # The evaluations' own cost so far, cumulative over the run (never counted in real_env_steps).
 EVAL_EPISODES = EVAL_PREFIX + "episodes"  # evaluation episodes run (one per grid cell per evaluation)
 EVAL_ENV_STEPS = EVAL_PREFIX + "env_steps"  # their env steps: episodes x episode length (a faulted one counts whole)

@@ -17,10 +17,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.device import resolve_device
 from unipolicy_rl.envs.config import morphology_env_kwargs, robot_kind
+from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, make_gym_env
 from unipolicy_rl.learners import OffPolicySettings
 from unipolicy_rl.learners.distillation import DistillationSettings
 from unipolicy_rl.objectives import ClippedSurrogate, TrustRegion
-from unipolicy_rl.world_models import Dynamics, StateLayout, TokenLayout
+from unipolicy_rl.world_models import Dynamics, FlatLayout, StateLayout, TokenLayout
 from unipolicy_rl.world_models.token_layout import TOKEN_STATE
 
 
@@ -67,10 +68,16 @@ def learner_settings(cfg: DictConfig) -> TrustRegion | ClippedSurrogate | OffPol
     return clipped_surrogate(cfg) if cfg.algo.name == "ppo" else off_policy_settings(cfg)
 
 
-def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout:
+def model_layout(cfg: DictConfig) -> StateLayout | TokenLayout | FlatLayout:
     """What the world model's state holds (``world_model.model_state``): the vertebrate's
     ``full`` or ``thesis`` state for its observation, or for ``robot=grammar`` every link's
-    token (``tokens``, padded to the env's ``max_links``)."""
+    token (``tokens``, padded to the env's ``max_links``); for ``env=gym`` the task's observation,
+    read off its specs (:meth:`FlatLayout.from_env`)."""
+    if env_kind(cfg) == GYM:
+        env = make_gym_env(env_id=gym_task(cfg).id)
+        layout = FlatLayout.from_env(env)
+        env.close()
+        return layout
     if cfg.world_model.model_state == TOKEN_STATE:
         if robot_kind(cfg) != "grammar":  # (validation's _world_model_reads_the_robot says more, earlier)
             raise ValueError(f"world_model.model_state={TOKEN_STATE} models link tokens, which "
@@ -89,8 +96,32 @@ def make_dynamics_model(cfg: DictConfig, action_dim: int | None = None,
     has a ``world_model`` (validate_config's check)."""
     layout = model_layout(cfg)
     if action_dim is None:
-        action_dim = layout.max_links if isinstance(layout, TokenLayout) else len(cfg.robot.settings.actuated)
+        if isinstance(layout, FlatLayout):
+            action_dim = len(layout.action_low)
+        else:
+            action_dim = layout.max_links if isinstance(layout, TokenLayout) else len(cfg.robot.settings.actuated)
+    heads = {}
+    if env_kind(cfg) == GYM and learned_heads(cfg):  # env.reward / env.termination decide what the ensemble learns
+        heads = {"learn": learned_heads(cfg)}
     # Partial, then called: Hydra would turn the layout dataclass into a config if passed through it.
     device = resolve_device(cfg.device) if device is None else torch.device(device)
     with torch.device(device):
-        return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim)
+        return instantiate(cfg.world_model.model, _partial_=True, _convert_="all")(layout=layout, action_dim=action_dim,
+                                                                                  **heads)
+
+
+def learned_heads(cfg: DictConfig) -> list[str]:
+    """For ``env=gym``: what the world model learns beside the next state, as ``env.reward`` and
+    ``env.termination`` say; a model that cannot learn them (PCE), or a ``world_model.model.learn``
+    that says otherwise, is refused by name."""
+    heads = gym_task(cfg).learned_heads()
+    configured = list(OmegaConf.select(cfg, "world_model.model.learn", default=[]) or [])
+    if configured and configured != heads:
+        raise ValueError(f"world_model.model.learn={configured} disagrees with env.reward={cfg.env.reward} and "
+                         f"env.termination={cfg.env.termination} (which learn {heads}): on env=gym set those two, "
+                         f"not world_model.model.learn")
+    if heads and "learn" not in OmegaConf.select(cfg, "world_model.model", default={}):
+        raise ValueError(f"world_model.model={cfg.world_model.model._target_.rsplit('.', 1)[-1]} learns no reward or "
+                         f"termination, and env.id={cfg.env.id} needs {heads} learned: use source=moe, or a known "
+                         f"reward and termination (env.reward=known, env.termination=known|none)")
+    return heads

@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
 from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
+from unipolicy_rl.envs.gym_task import ENV_KINDS, GYM, env_kind, gym_task
 from unipolicy_rl.envs.morphology import HINGE_TYPES, SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
@@ -169,6 +170,30 @@ def _equal_shares(cfg: DictConfig) -> str | None:
     if cfg.episodes_per_epoch % cfg.workers:
         return (f"episodes_per_epoch ({cfg.episodes_per_epoch}) must be a multiple of workers ({cfg.workers}): "
                 f"each worker steps an equal share of the robots")
+    return None
+
+
+def _gym_task_alone(cfg: DictConfig) -> str | None:
+    """``env=gym`` runs one gymnasium env in this process: the walker's robots, designs, worker
+    processes and teachers have no meaning there, and each is refused by name."""
+    if env_kind(cfg) not in ENV_KINDS:
+        return f"env.kind must be one of {list(ENV_KINDS)}, got {env_kind(cfg)!r}"
+    if env_kind(cfg) != GYM:
+        return None
+    walker_only = {
+        "robot": (robot_kind(cfg) != "vertebrate", f"robot={robot_kind(cfg)}"),
+        "design": (list(cfg.design.length_range) != list(cfg.design_space.length_range)
+                   or list(cfg.design.density_range) != list(cfg.design_space.density_range),
+                   "a design other than the SE range (design=de, source=de)"),
+        "workers": (cfg.workers != 1, f"workers={cfg.workers}"),
+        "episodes_per_epoch": (cfg.episodes_per_epoch != 1,
+                               f"episodes_per_epoch={cfg.episodes_per_epoch} (set env.frames_per_epoch)"),
+        "collector.backend": (cfg.collector.backend != "process", f"collector.backend={cfg.collector.backend}"),
+        "algo": (cfg.algo.name == "distill", "algo=distill (it teaches grammar robots)"),
+    }
+    for _, (bad, what) in walker_only.items():
+        if bad:
+            return f"{what} is the walker's and has no meaning with env=gym (a gymnasium task, env.id={cfg.env.id})"
     return None
 
 
@@ -345,6 +370,8 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("episodes_per_epoch", "workers"): _equal_shares,
     ("source", "world_model", "imagination", "algo.name"): _model_source_groups,
     ("robot",): _known_robot,
+    ("env", "robot", "design", "design_space", "workers", "episodes_per_epoch", "collector", "algo.name"):
+        _gym_task_alone,
     ("robot", "policy.name"): _policy_reads_the_robot,
     ("robot", "policy.name", "source.kind"): _clock_is_read,
     ("policy",): _token_critic_builds,
@@ -393,6 +420,8 @@ def validate_config(cfg: DictConfig) -> None:
     from unipolicy_rl.settings import learner_settings, make_dynamics_model
     from unipolicy_rl.world_models.disagreement import check_members_disagree
 
+    if env_kind(cfg) == GYM:
+        _built("env=gym", lambda: gym_task(cfg))
     evaluation = cfg.evaluation
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
     _built("design", lambda: instantiate(cfg.design))

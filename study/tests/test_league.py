@@ -365,13 +365,13 @@ folder = Path(arguments["hydra.run.dir"])
         folder.mkdir(parents=True)
         torch.save({"epoch": 3}, folder / "checkpoint.pt")
     (folders[1] / "evaluation").mkdir()
-    (folders[1] / queue.FINAL_EVALUATION).write_text("design\n")
+    (folders[1] / queue.FINAL_EVALUATIONS[0]).write_text("design\n")
     assert queue.main(["--code", str(code), "--runs", str(tmp_path / "runs"), "--plan", str(tmp_path / "plan.yaml"),
                        "--entries", "se-trpo", "--seeds", "0-1", "--jobs", "1"]) == 0
     printed = capsys.readouterr().out
     assert "seed 0: trained (3 of 3 epochs), resumed for its final evaluation" in printed
     assert (folders[0] / "called.txt").read_text() == str(folders[0] / "checkpoint.pt")
-    assert (folders[0] / queue.FINAL_EVALUATION).is_file()
+    assert (folders[0] / queue.FINAL_EVALUATIONS[0]).is_file()
     assert "seed 1: done (3 of 3 epochs)" in printed and not (folders[1] / "called.txt").exists()
 
 
@@ -468,12 +468,12 @@ torch.save({"epoch": epoch}, folder / "checkpoint.pt")
     # Finished (its final evaluation written), a run has nothing to resume: the archive drops its checkpoint
     # and keeps its final policy alone, for runs that learn from it.
     (folder / "evaluation").mkdir()
-    (folder / queue.FINAL_EVALUATION).write_text("design\n")
+    (folder / queue.FINAL_EVALUATIONS[0]).write_text("design\n")
     torch.save({"epoch": 3, "policy": {"actor": torch.ones(2)}, "learner": {"critic": torch.ones(2)}},
                folder / "checkpoint.pt")
     files = archive_run(folder, kept, checkpoint_limit=2**20)
     assert Path("checkpoint.pt") not in files and not (kept / "checkpoint.pt").exists()
-    assert (kept / queue.FINAL_EVALUATION).is_file()
+    assert (kept / queue.FINAL_EVALUATIONS[0]).is_file()
     policy = torch.load(kept / "policy.pt")
     assert Path("policy.pt") in files and policy["resumable"] is False and "learner" not in policy
     assert torch.equal(policy["policy"]["actor"], torch.ones(2))

@@ -1,5 +1,6 @@
 """The env a config describes: keyword arguments of :class:`~unipolicy_rl.envs.BatchedWalkerEnv`
-(``robot=vertebrate``), or a :class:`~unipolicy_rl.envs.MorphologyWalkerEnv` (``robot=grammar``).
+(``robot=vertebrate``), a :class:`~unipolicy_rl.envs.MorphologyWalkerEnv` (``robot=grammar``), or
+for ``env=gym`` a gymnasium task (:func:`~unipolicy_rl.envs.gym_task.make_gym_env`).
 
 Training, evaluation and a loaded checkpoint all build their robots from here, so a policy is
 always run on the env it was trained on.
@@ -15,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
+from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, make_gym_env
 from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS, StructuralLayout
 from unipolicy_rl.robots.grammar import Morphology, MorphologySplit
@@ -128,11 +130,27 @@ def make_morphology_env(cfg: DictConfig, num_robots: int) -> MorphologyWalkerEnv
     return MorphologyWalkerEnv(num_robots, **morphology_env_kwargs(cfg))
 
 
+def frames_per_epoch(cfg: DictConfig) -> int:
+    """Real env steps of one epoch: ``episodes_per_epoch`` walker episodes of ``robot.episode_length``
+    steps, or a gym task's ``env.frames_per_epoch``."""
+    if env_kind(cfg) == GYM:
+        return int(cfg.env.frames_per_epoch)
+    return cfg.episodes_per_epoch * cfg.robot.episode_length
+
+
+def episode_length(cfg: DictConfig) -> int:
+    """The longest episode: the walker's ``robot.episode_length``, or a gym task's time limit."""
+    return gym_task(cfg).episode_length if env_kind(cfg) == GYM else cfg.robot.episode_length
+
+
 def env_builder(cfg: DictConfig) -> tuple[type[EnvBase], dict]:
     """The env class the config's robot runs in and its keyword arguments (all but ``num_robots``):
     :class:`BatchedWalkerEnv` and :func:`env_kwargs` for ``robot=vertebrate``,
-    :class:`MorphologyWalkerEnv` and :func:`morphology_env_kwargs` for ``robot=grammar``. Both
-    are plain picklable values, so collector worker processes and Ray actors build the same env."""
+    :class:`MorphologyWalkerEnv` and :func:`morphology_env_kwargs` for ``robot=grammar``, and
+    :func:`make_gym_env` with the task's id for ``env=gym``. All are plain picklable values, so
+    collector worker processes and Ray actors build the same env."""
+    if env_kind(cfg) == GYM:
+        return make_gym_env, {"env_id": gym_task(cfg).id}
     kind = robot_kind(cfg)
     if kind not in ROBOT_KINDS:
         raise ValueError(f"robot.kind must be one of {ROBOT_KINDS}, got {kind!r}")

@@ -90,3 +90,26 @@ def known_termination(env_id: str) -> TensorDictModule | None:
     never terminates or has none known here."""
     module = TERMINATIONS.get(env_id.split("-")[0])
     return None if module is None else termination(module())
+
+
+class InvertedPendulumReward(nn.Module):
+    """InvertedPendulum-v5's reward: 1 for a step that leaves the pole up, 0 for the one that drops it."""
+
+    def forward(self, next_observation: torch.Tensor) -> torch.Tensor:
+        return 1.0 - InvertedPendulumTermination()(next_observation).float()
+
+
+# Each gymnasium id's exact reward (by the name before the version), in the task's own action units.
+REWARDS = {
+    "Pendulum": pendulum_reward,
+    "InvertedPendulum": lambda: TensorDictModule(InvertedPendulumReward(), in_keys=[NEXT_OBSERVATION],
+                                                 out_keys=[("next", "reward")]),
+}
+
+
+def known_reward(env_id: str) -> TensorDictModule | None:
+    """The exact reward of gymnasium's ``env_id`` (``Pendulum-v1``), or None where none is known here
+    (the MuJoCo locomotion tasks' forward reward is a finite difference of a position the
+    observation leaves out: a world model learns it)."""
+    make = REWARDS.get(env_id.split("-")[0])
+    return None if make is None else make()

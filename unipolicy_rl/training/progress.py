@@ -15,7 +15,8 @@ from tensordict import TensorDictBase
 
 from unipolicy_rl.checkpoint import load_policy
 from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.envs.config import env_kwargs, morphology_env_kwargs, robot_kind
+from unipolicy_rl.envs.config import env_kwargs, episode_length, frames_per_epoch, morphology_env_kwargs, robot_kind
+from unipolicy_rl.envs.gym_task import GYM, env_kind, evaluate_returns, gym_episode_metrics, gym_task
 from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
 from unipolicy_rl.envs.tokens import walking_observation
 from unipolicy_rl.evaluation import (
@@ -36,7 +37,10 @@ from unipolicy_rl.training.metrics_file import MetricsCSV
 
 
 def episode_metrics(batch: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
-    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended."""
+    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended
+    (for ``env=gym``: their mean return, :func:`~unipolicy_rl.envs.gym_task.gym_episode_metrics`)."""
+    if env_kind(cfg) == GYM:
+        return gym_episode_metrics(batch, episode_length(cfg))
     done = batch["next", "done"].squeeze(-1)
     displacement = forward_displacement(walking_observation(batch["next"]))[done].mean().item()
     control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
@@ -170,7 +174,7 @@ class PeriodicEvaluation:
         """Evaluates if the epoch that just brought the run to ``real_env_steps`` crossed a
         schedule point (else returns no metrics)."""
         self.improved = False
-        epoch_steps = self.cfg.episodes_per_epoch * self.cfg.robot.episode_length  # this epoch's real steps
+        epoch_steps = frames_per_epoch(self.cfg)  # this epoch's real steps
         if not self.due(real_env_steps, epoch_steps):
             return {}
         extra = {}
@@ -205,6 +209,45 @@ class PeriodicEvaluation:
         return metrics
 
 
+class ReturnEvaluation(PeriodicEvaluation):
+    """``env=gym``'s periodic evaluation: the deterministic policy's mean return over
+    ``env.evaluation_episodes`` real episodes, on the same schedule in real env steps as the
+    walker's grid (:class:`PeriodicEvaluation`), the best one by mean return. Its rows:
+    ``eval/mean_return``, ``eval/min_return``, the episodes so far and its seconds."""
+
+    def __init__(self, cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> None:
+        self.cfg, self.best, self.run_dir, self.improved = cfg, best, run_dir, False
+        self.task = gym_task(cfg)
+
+    def __call__(self, epoch: int, real_env_steps: int, policy) -> dict[str, float]:
+        self.improved = False
+        epoch_steps = frames_per_epoch(self.cfg)
+        if not self.due(real_env_steps, epoch_steps):
+            return {}
+        started = time.perf_counter()
+        returns = evaluate_returns(policy, self.task.id, self.task.evaluation_episodes, self.cfg.seed,
+                                   self.task.episode_length)
+        mean = sum(returns) / len(returns)
+        episodes = evaluations_done(real_env_steps, epoch_steps, *self.schedule) * len(returns)
+        if self.best is None or mean > self.best["mean_return"]:
+            self.best, self.improved = {"epoch": epoch, "mean_return": mean}, True
+        return {columns.EVAL_RETURN: mean, columns.EVAL_MIN_RETURN: min(returns),
+                columns.EVAL_EPISODES: float(episodes), columns.EVAL_SECONDS: time.perf_counter() - started}
+
+
+def make_evaluation(cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> PeriodicEvaluation:
+    """The run's periodic evaluation: the walker's design grid, or a gym task's returns."""
+    evaluation = ReturnEvaluation if env_kind(cfg) == GYM else PeriodicEvaluation
+    return evaluation(cfg, best=best, run_dir=run_dir)
+
+
+def describe_best(best: dict) -> str:
+    """The best periodic evaluation, in words."""
+    if "mean_return" in best:
+        return f"epoch {best['epoch']}, mean return {best['mean_return']:.1f}"
+    return f"epoch {best['epoch']}, grid mean {best['grid_mean']:.2f} m, worst design {best['grid_min']:.2f} m"
+
+
 def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title: str) -> dict:
     """The saved policy on the evaluation grid (``evaluation.episodes`` per design): CSV, heatmaps,
     the training curve, and the summary. For ``robot=grammar``: every morphology of
@@ -213,7 +256,14 @@ def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title:
     the summary over all cells with the per-morphology figures."""
     out = run_dir / "evaluation"
     loaded = load_policy(checkpoint_path)
-    if robot_kind(cfg) == "grammar":
+    if env_kind(cfg) == GYM:  # the deterministic policy's return in env.evaluation_episodes episodes
+        task = gym_task(cfg)
+        returns = evaluate_returns(loaded.policy, task.id, task.evaluation_episodes, cfg.seed, task.episode_length)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "returns.csv").write_text("episode,return\n" + "".join(f"{i},{r}\n" for i, r in enumerate(returns)))
+        summary = {"mean_return": sum(returns) / len(returns), "min_return": min(returns),
+                   "max_return": max(returns), "episodes": len(returns)}
+    elif robot_kind(cfg) == "grammar":
         summary, results = MorphologyGrid(cfg, cfg.evaluation.grid)(loaded.policy, progress=True)
         write_morphology_csvs(results, out)
     else:
