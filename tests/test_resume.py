@@ -122,3 +122,19 @@ def test_a_killed_distillation_resumed_from_its_checkpoint_alone_is_the_run_it_w
                 for index in (0, 1)]
     killed_and_resumed(tmp_path, [*GRAMMAR, "algo=distill", f"algo.teachers=[{teachers[0]},{teachers[1]}]",
                                   "algo.updates_per_epoch=3", "algo.batch_size=8", "algo.learning_rate=0.002"])
+
+
+GYM = ["env=gym", "env.id=Pendulum-v1", "env.frames_per_epoch=50", "evaluation.every_steps=50",
+       "env.evaluation_episodes=1", "progress_bar=false", "epochs=3", "checkpoint_every=1", "seed=4"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["se-moe-trpo", "sac"])
+def test_a_killed_gym_run_resumed_from_its_checkpoint_alone_is_the_run_it_was(case, tmp_path):
+    overrides = [*GYM, *CASES[case]]
+    straight = train(*overrides, f"hydra.run.dir={tmp_path / 'straight'}")
+    killed_after_its_first_checkpoint(tmp_path / "cut", overrides)
+    printed = finished(train(f"resume={tmp_path / 'cut' / 'checkpoint.pt'}", f"hydra.run.dir={tmp_path / 'cut'}"))
+    finished(straight)
+    assert_the_same_run(tmp_path / "straight", tmp_path / "cut")
+    assert not [line for line in printed.splitlines() if line.startswith("resume:")]

@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from unipolicy_rl.evaluation.grid import DesignResult
-from unipolicy_rl.metric_columns import DISPLACEMENT, EPOCH, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
+from unipolicy_rl.metric_columns import DISPLACEMENT, EPOCH, EVAL_RETURN, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
 
 # (attribute of DesignResult, file stem, colour-bar label)
 HEATMAPS = (
@@ -77,30 +77,32 @@ def _annotate_cells(axes, image, values: np.ndarray) -> None:
 
 
 def plot_training_curve(csv_path_or_rows: str | Path | Iterable[Mapping], out_path: str | Path) -> Path:
-    """Real episode reward (and forward displacement, and the periodic grid evaluation, when
-    logged) from a metrics CSV or its rows, against real env steps when logged, else epochs.
+    """Real episode reward (and forward displacement, the periodic grid evaluation, or a gym task's
+    evaluation return, when logged) from a metrics CSV or its rows, against real env steps when
+    logged, else epochs.
 
-    Expects columns ``epoch`` and ``train/episode_reward``, optionally ``real_env_steps``,
-    ``train/forward_displacement``, ``eval/grid_mean_displacement`` and
-    ``eval/grid_min_displacement``. Blank cells (a metric not logged on that row, as on a
-    model-based run's imagined rows) are skipped, so only real returns are drawn.
+    Reads columns ``epoch``, ``train/episode_reward``, and where they are logged ``real_env_steps``,
+    ``train/forward_displacement``, ``eval/grid_mean_displacement``, ``eval/grid_min_displacement``
+    and ``eval/mean_return``. Blank cells (a metric not logged on that row, as on a model-based
+    run's imagined rows, or a gym epoch in which no episode ended) are skipped, so only real returns
+    are drawn; a panel with nothing to draw is left out.
     """
     rows = _read_rows(csv_path_or_rows)
     x_column, x_label = (REAL_STEPS, "real env steps") if any(
         _number(row.get(REAL_STEPS)) is not None for row in rows) else (EPOCH, "epoch")
-    panels = [((REWARD,), "episode reward")]
-    if any(_number(row.get(DISPLACEMENT)) is not None for row in rows):
-        panels.append(((DISPLACEMENT,), "forward displacement (m)"))
-    if any(_number(row.get(GRID_MEAN)) is not None for row in rows):
-        panels.append(((GRID_MEAN, GRID_MIN), "design grid (m)"))
+    candidates = [((REWARD,), "episode reward"), ((DISPLACEMENT,), "forward displacement (m)"),
+                  ((GRID_MEAN, GRID_MIN), "design grid (m)"), ((EVAL_RETURN,), "evaluation return")]
+    panels = [(columns, label) for columns, label in candidates
+              if any(_number(row.get(columns[0])) is not None and _number(row.get(x_column)) is not None
+                     for row in rows)]
+    if not panels:
+        raise ValueError(f"no rows with both {x_column!r} and {REWARD!r} or {EVAL_RETURN!r}: is this a metrics CSV?")
     figure = Figure(figsize=(7, 3 * len(panels)))
     axes = figure.subplots(len(panels), 1, sharex=True, squeeze=False)
     for axis, (columns, label) in zip(axes[:, 0], panels, strict=True):
         for column in columns:
             points = [(_number(row.get(x_column)), _number(row.get(column))) for row in rows]
             points = [(x, value) for x, value in points if x is not None and value is not None]
-            if not points and column == REWARD:
-                raise ValueError(f"no rows with both {x_column!r} and {REWARD!r}: is this a metrics CSV?")
             name = column.split("/")[-1].replace("grid_", "").replace("_displacement", "")
             axis.plot([x for x, _ in points], [value for _, value in points], marker="." if len(points) < 50 else "",
                       label=name if len(columns) > 1 else None)
