@@ -47,13 +47,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-import yaml
-
-# Run as a file, the script's folder leads sys.path (where ``queue.py`` would shadow the standard
-# library's): the repository root takes its place, for ``import study``.
+# Run as a file, the script's folder leads sys.path, where ``queue.py`` would shadow the standard
+# library's (which torch imports): the repository root takes its place, before any third-party
+# import, and serves ``import study``.
 if __package__ in (None, ""):
     sys.path[0] = str(Path(__file__).resolve().parents[1])
+
+import torch  # noqa: E402
+import yaml  # noqa: E402
 
 from study.league.levels import LEVELS  # noqa: E402
 from study.records import run_evaluations  # noqa: E402

@@ -609,3 +609,14 @@ def test_a_run_whose_metrics_are_garbage_is_left_out_for_that_reason(tmp_path, c
     assert report.main([str(tmp_path), "--out", str(tmp_path / "out"), "--resamples", "100"]) == 0
     stderr = capsys.readouterr().err
     assert "se-trpo_seed1" in stderr and "unreadable" in stderr and "no periodic grid evaluation" not in stderr
+
+
+def test_the_queue_runs_as_a_script_its_name_shadowing_no_module_torch_imports():
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "queue.py"
+    result = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=300,
+                            check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "--plan" in result.stdout
