@@ -40,6 +40,7 @@ from unipolicy_rl.learners.policy_average import end_of_epoch, learning_policy
 from unipolicy_rl.objectives.adaptive_kl import imagined_trust_region
 from unipolicy_rl.resume import named_keys, record_resumed_config, settings_for_resume, with_the_runs_groups
 from unipolicy_rl.seeding import MODEL_FIT, reseed
+from unipolicy_rl.settings import evaluation_plan
 from unipolicy_rl.training import RunLock, StopAtEpochEnd, process_tree_cpu_seconds
 from unipolicy_rl.training.progress import (
     RunLog,
@@ -91,14 +92,15 @@ def main(cfg: DictConfig) -> dict:
                                      observation_dim=observation_dim, action_dim=action_dim, learner=learner,
                                      collector=real, world=world,
                                      elapsed_before=state.get("elapsed", 0.0) if state else 0.0)
-        evaluation = make_evaluation(cfg, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
+        plan = evaluation_plan(cfg)  # what the reports and evaluations run on, and when
+        evaluation = make_evaluation(plan, best=state.get("best_evaluation") if state else None, run_dir=run_dir)
         log = RunLog(instantiate(cfg.logger), run_dir, cfg.epochs, real.epoch, cfg.run_name, cfg.progress_bar)
         tick, tick_cpu = time.perf_counter(), process_tree_cpu_seconds()
         for batch in real:
             epoch = real.epoch
             # ---- Real data (and a policy update on it, unless the world model's data alone train it)
             collected = time.perf_counter()
-            metrics = {columns.IMAGINED: 0.0, **episode_metrics(batch, cfg)}
+            metrics = {columns.IMAGINED: 0.0, **episode_metrics(batch, plan)}
             if world is None or world.imagination.train_on_real:
                 metrics.update(learner.update(batch))
             # The next updates normalise with statistics that include this epoch's observations.
@@ -157,7 +159,7 @@ def main(cfg: DictConfig) -> dict:
         log.close()
         path = checkpoints.save(evaluation.best)
 
-    summary = evaluate_final(cfg, path, run_dir, cfg.run_name)
+    summary = evaluate_final(plan, path, run_dir, cfg.run_name)
     print(f"saved policy: {path}")
     if "mean_return" in summary:  # env=gym: returns over env.evaluation_episodes episodes
         print(f"{summary['episodes']} episodes: mean return {summary['mean_return']:.1f} (lowest "

@@ -37,6 +37,7 @@ if __package__ in (None, ""):
     sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from study.morphology import grammar_runs  # noqa: E402
+from study.morphology.grammar_runs import RobotScore  # noqa: E402
 from unipolicy_rl.report.metrics import column, real_env_steps, training_cpu_seconds, training_seconds  # noqa: E402
 from unipolicy_rl.report.runs import COMMANDS, ReportError, Run, load_run  # noqa: E402
 from unipolicy_rl.report.runs import discover as discover_runs  # noqa: E402
@@ -67,22 +68,6 @@ class Evaluation:
     cpu_seconds: float = math.nan
     walking_designs: float = math.nan  # designs of the grid that walk (NaN where not logged)
     mean_return: float = math.nan  # env=gym: the deterministic policy's mean return (NaN on the walker)
-
-
-@dataclass(frozen=True)
-class RobotScore:
-    """A grammar run's robot: its side of the split for that run and its final evaluation (NaN
-    where the run's final evaluation did not include it)."""
-
-    derivation: str
-    side: str
-    links: int
-    mean_displacement: float = math.nan
-    worst_displacement: float = math.nan
-
-    @property
-    def evaluated(self) -> bool:
-        return not math.isnan(self.mean_displacement)
 
 
 @dataclass

@@ -10,6 +10,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from unipolicy_rl.evaluation import DesignResult
+from unipolicy_rl.settings import evaluation_plan
 from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training import progress
 from unipolicy_rl.training.progress import PeriodicEvaluation, evaluation_points, evaluations_done
@@ -47,7 +48,7 @@ def grid_stub(monkeypatch):
 
 def evaluated_epochs(evaluation: PeriodicEvaluation, epochs) -> dict[int, dict]:
     """Epoch -> the evaluation's metrics, for the epochs it evaluated after (as train.py calls it)."""
-    epoch_steps = evaluation.cfg.episodes_per_epoch * evaluation.cfg.robot.episode_length
+    epoch_steps = evaluation.plan.epoch_steps
     return {epoch: metrics for epoch in epochs if (metrics := evaluation(epoch, epoch * epoch_steps, policy=None))}
 
 
@@ -56,7 +57,7 @@ SCHEDULE = {"every_steps": 2000, "dense_until": 10000, "then_every_steps": 5000}
 
 def test_the_evaluation_runs_at_the_schedule_points_in_real_steps(grid_stub):
     cfg = schedule_config(**SCHEDULE)
-    evaluation = PeriodicEvaluation(cfg)
+    evaluation = PeriodicEvaluation(evaluation_plan(cfg))
     done = evaluated_epochs(evaluation, range(1, 21))
     assert list(done) == [2, 4, 6, 8, 10, 15, 20]
     assert len(grid_stub) == 7 and grid_stub[0] == 4  # one episode per design of the 2 x 2 grid
@@ -70,10 +71,11 @@ def test_the_evaluation_runs_at_the_schedule_points_in_real_steps(grid_stub):
 
 def test_a_resumed_evaluation_continues_at_the_same_points(grid_stub):
     cfg = schedule_config(**SCHEDULE)
-    straight = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 21))
-    first = PeriodicEvaluation(cfg)
+    straight = evaluated_epochs(PeriodicEvaluation(evaluation_plan(cfg)), range(1, 21))
+    first = PeriodicEvaluation(evaluation_plan(cfg))
     evaluated_epochs(first, range(1, 8))
-    resumed = evaluated_epochs(PeriodicEvaluation(cfg, best=first.best), range(8, 21))  # a fresh process
+    # (a fresh process)
+    resumed = evaluated_epochs(PeriodicEvaluation(evaluation_plan(cfg), best=first.best), range(8, 21))
     assert list(resumed) == [8, 10, 15, 20]
     assert [m[columns.EVAL_EPISODES] for m in resumed.values()] == \
         [straight[epoch][columns.EVAL_EPISODES] for epoch in resumed]
@@ -83,10 +85,10 @@ def test_an_epoch_crossing_several_points_evaluates_once_and_zero_turns_it_off(g
     cfg = schedule_config(episodes_per_epoch=35, **SCHEDULE)
     # 3,500-step epochs: the first crosses 2,000, the second 4,000 and 6,000 (one evaluation), the
     # third 8,000 and 10,000, the fourth (to 14,000) none, then 15,000 and 20,000.
-    done = evaluated_epochs(PeriodicEvaluation(cfg), range(1, 7))
+    done = evaluated_epochs(PeriodicEvaluation(evaluation_plan(cfg)), range(1, 7))
     assert list(done) == [1, 2, 3, 5, 6] and done[6][columns.EVAL_EPISODES] == 5 * 4
     off = schedule_config(every_steps=0)
-    assert not evaluated_epochs(PeriodicEvaluation(off), range(1, 30))
+    assert not evaluated_epochs(PeriodicEvaluation(evaluation_plan(off)), range(1, 30))
 
 
 @pytest.mark.parametrize(("every", "until", "then", "epoch"),

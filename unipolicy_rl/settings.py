@@ -16,11 +16,19 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.device import resolve_device
-from unipolicy_rl.envs.config import morphology_env_kwargs, robot_kind
+from unipolicy_rl.envs import DesignDistribution
+from unipolicy_rl.envs.config import (
+    env_kwargs,
+    episode_length,
+    frames_per_epoch,
+    morphology_env_kwargs,
+    robot_kind,
+)
 from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, make_gym_env
 from unipolicy_rl.learners import OffPolicySettings
 from unipolicy_rl.learners.distillation import DistillationSettings
 from unipolicy_rl.objectives import ClippedSurrogate, TrustRegion
+from unipolicy_rl.training.progress import EvaluationPlan, MorphologyGrid
 from unipolicy_rl.world_models import Dynamics, FlatLayout, StateLayout, TokenLayout
 from unipolicy_rl.world_models.token_layout import TOKEN_STATE
 
@@ -125,3 +133,29 @@ def learned_heads(cfg: DictConfig) -> list[str]:
                          f"termination, and env.id={cfg.env.id} needs {heads} learned: use source=moe, or a known "
                          f"reward and termination (env.reward=known, env.termination=known|none)")
     return heads
+
+
+def evaluation_designs(cfg: DictConfig, grid: int) -> tuple:
+    """``grid`` designs per axis over the evaluation's ranges (``evaluation.length_range``, ``density_range``)."""
+    evaluation = cfg.evaluation
+    return tuple(DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)).grid(grid))
+
+
+def evaluation_plan(cfg: DictConfig) -> EvaluationPlan:
+    """What the run's reports and evaluations run on (``evaluation``, the env's sizes, the seed): the
+    walker's design grid (``evaluation.grid`` per axis) and its env, a grammar run's morphology grids
+    (``evaluation.morphology_grid`` while training, ``evaluation.grid`` at the end), or a gym task."""
+    evaluation = cfg.evaluation
+    common = {"seed": cfg.seed, "epoch_steps": frames_per_epoch(cfg), "episode_length": episode_length(cfg),
+              "schedule": (evaluation.every_steps, evaluation.dense_until, evaluation.then_every_steps)}
+    if env_kind(cfg) == GYM:
+        return EvaluationPlan(**common, gym=gym_task(cfg))
+    designs = evaluation_designs(cfg, evaluation.grid)
+    walker = {**common, "designs": designs, "final_episodes": evaluation.episodes,
+              "control_period": cfg.robot.physics.time_step * cfg.robot.physics.substeps}
+    if robot_kind(cfg) == "grammar":
+        kwargs = morphology_env_kwargs(cfg, evaluation.morphologies)
+        return EvaluationPlan(**walker, morphologies=MorphologyGrid(
+            kwargs, evaluation_designs(cfg, evaluation.morphology_grid), cfg.seed),
+            final_morphologies=MorphologyGrid(kwargs, designs, cfg.seed))
+    return EvaluationPlan(**walker, env_kwargs=env_kwargs(cfg))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import math
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -25,6 +26,23 @@ PERIODIC_CSV = Path("evaluation") / "periodic_morphologies.csv"
 TRAINED, HELD_OUT, UNTRAINED = "trained", "held_out", "train side, not trained on"
 SPECIALIST_POLICY = "token_mlp"  # issue 23's specialist: an MLP policy on the robot's own observation
 SPECIALIST_ALGO = "trpo"  # ... trained by SE-TRPO
+
+
+
+@dataclass(frozen=True)
+class RobotScore:
+    """A grammar run's robot: its side of the split for that run and its final evaluation (NaN
+    where the run's final evaluation did not include it)."""
+
+    derivation: str
+    side: str
+    links: int
+    mean_displacement: float = math.nan
+    worst_displacement: float = math.nan
+
+    @property
+    def evaluated(self) -> bool:
+        return not math.isnan(self.mean_displacement)
 
 
 def is_grammar_run(run: Run) -> bool:
@@ -138,7 +156,6 @@ def describe(run: Run, teachers_root: Path = Path(".")):
     (:func:`split_sides`; blank for a specialist, the reference, whose split the table never reads)
     and its final evaluation where it has one."""
     # Imported here: the record's types live with the format, which imports this module.
-    from study.records import RobotScore
 
     final, periodic = final_rows(run), periodic_curves(run)
     specialist = is_specialist(run)

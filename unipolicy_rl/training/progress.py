@@ -6,17 +6,16 @@ rows go (logger, metrics.csv, progress bar). None of it is the algorithm; train.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import tqdm
-from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from unipolicy_rl.checkpoint import load_policy
-from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.envs.config import env_kwargs, episode_length, frames_per_epoch, morphology_env_kwargs, robot_kind
-from unipolicy_rl.envs.gym_task import GYM, env_kind, evaluate_returns, gym_episode_metrics, gym_task
+from unipolicy_rl.envs.gym_task import GymTask, evaluate_returns, gym_episode_metrics
 from unipolicy_rl.envs.reward import forward_displacement, mean_forward_speed
 from unipolicy_rl.envs.tokens import walking_observation
 from unipolicy_rl.evaluation import (
@@ -36,52 +35,71 @@ from unipolicy_rl.training import metrics_file as columns
 from unipolicy_rl.training.metrics_file import MetricsCSV
 
 
-def episode_metrics(batch: TensorDictBase, cfg: DictConfig) -> dict[str, float]:
-    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended
-    (for ``env=gym``: their mean return, :func:`~unipolicy_rl.envs.gym_task.gym_episode_metrics`)."""
-    if env_kind(cfg) == GYM:
-        return gym_episode_metrics(batch, episode_length(cfg))
-    done = batch["next", "done"].squeeze(-1)
-    displacement = forward_displacement(walking_observation(batch["next"]))[done].mean().item()
-    control_period = cfg.robot.physics.time_step * cfg.robot.physics.substeps
-    return {
-        columns.REWARD: batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
-        columns.REWARD_PER_STEP: batch["next", "reward"].mean().item(),
-        columns.DISPLACEMENT: displacement,
-        columns.SPEED: mean_forward_speed(displacement, cfg.robot.episode_length, control_period),
-        columns.PHYSICS_FAULTS: batch["next", "physics_fault"].sum().item(),
-    }
-
-
-def evaluation_designs(cfg: DictConfig, grid: int | None = None) -> list:
-    """The evaluation grid: ``grid`` (default ``evaluation.grid``) designs per axis over the evaluation ranges."""
-    settings = cfg.evaluation
-    return DesignDistribution(tuple(settings.length_range), tuple(settings.density_range)).grid(
-        settings.grid if grid is None else grid)
-
-
-# robot=grammar: the periodic evaluation's per-morphology rows, in the run's evaluation folder.
-PERIODIC_MORPHOLOGIES = Path("evaluation") / "periodic_morphologies.csv"
-
-
+@dataclass(frozen=True)
 class MorphologyGrid:
-    """``robot=grammar``'s evaluation: every morphology of ``evaluation.morphologies`` (the
-    training side by default; ``held_out`` or ``all`` for zero-shot transfer) over a design grid,
-    deterministic policy, one episode per cell. :meth:`__call__` returns the summary over all cells
+    """``robot=grammar``'s evaluation: every morphology of ``env_kwargs`` (those of
+    ``evaluation.morphologies``: the training side by default; ``held_out`` or ``all`` for
+    zero-shot transfer) over ``designs``, deterministic policy, one episode per cell.
+    :meth:`__call__` returns the summary over all cells
     (:func:`~unipolicy_rl.evaluation.summarise_morphologies`) and the per-morphology results."""
 
-    def __init__(self, cfg: DictConfig, grid: int) -> None:
-        self.env_kwargs = morphology_env_kwargs(cfg, cfg.evaluation.morphologies)
-        self.designs = evaluation_designs(cfg, grid)
-        self.seed = cfg.seed
+    env_kwargs: dict
+    designs: tuple
+    seed: int
 
     @property
     def cells(self) -> int:
         return len(self.env_kwargs["morphologies"]) * len(self.designs)
 
     def __call__(self, policy, progress: bool = False):
-        results = evaluate_on_morphologies(policy, self.env_kwargs, self.designs, seed=self.seed, progress=progress)
+        results = evaluate_on_morphologies(policy, self.env_kwargs, list(self.designs), seed=self.seed,
+                                           progress=progress)
         return summarise_morphologies(results), results
+
+
+@dataclass(frozen=True)
+class EvaluationPlan:
+    """What a run's reports and evaluations run on, and when: built once from the config by
+    :func:`unipolicy_rl.settings.evaluation_plan` (this module reads no config).
+
+    Every run has the seed, the real env steps of one epoch, the schedule in real env steps
+    (every ``schedule[0]`` up to ``schedule[1]``, then every ``schedule[2]``) and the longest
+    episode. The walker adds its design grid, the episodes per design of the final evaluation and
+    its control period; ``robot=vertebrate`` the env's keyword arguments, ``robot=grammar`` the
+    morphology grids of the periodic and the final evaluation; ``env=gym`` the task instead.
+    """
+
+    seed: int
+    epoch_steps: int
+    schedule: tuple[int, int, int]
+    episode_length: int
+    designs: tuple = ()
+    final_episodes: int = 1
+    control_period: float = math.nan
+    env_kwargs: dict | None = None
+    morphologies: MorphologyGrid | None = None
+    final_morphologies: MorphologyGrid | None = None
+    gym: GymTask | None = None
+
+
+def episode_metrics(batch: TensorDictBase, plan: EvaluationPlan) -> dict[str, float]:
+    """Mean episode reward, forward displacement (m) and speed (m/s) of the real episodes that ended
+    (for ``env=gym``: their mean return, :func:`~unipolicy_rl.envs.gym_task.gym_episode_metrics`)."""
+    if plan.gym is not None:
+        return gym_episode_metrics(batch, plan.episode_length)
+    done = batch["next", "done"].squeeze(-1)
+    displacement = forward_displacement(walking_observation(batch["next"]))[done].mean().item()
+    return {
+        columns.REWARD: batch["next", "episode_reward"].squeeze(-1)[done].mean().item(),
+        columns.REWARD_PER_STEP: batch["next", "reward"].mean().item(),
+        columns.DISPLACEMENT: displacement,
+        columns.SPEED: mean_forward_speed(displacement, plan.episode_length, plan.control_period),
+        columns.PHYSICS_FAULTS: batch["next", "physics_fault"].sum().item(),
+    }
+
+
+# robot=grammar: the periodic evaluation's per-morphology rows, in the run's evaluation folder.
+PERIODIC_MORPHOLOGIES = Path("evaluation") / "periodic_morphologies.csv"
 
 
 def evaluation_points(real_env_steps: int, every_steps: int, dense_until: int, then_every_steps: int) -> int:
@@ -144,16 +162,15 @@ class PeriodicEvaluation:
     in ``run_dir``.
 
     Args:
-        cfg: the run's config.
+        plan: what the run evaluates on, and when.
         best: the best evaluation of the run so far (a resumed run's), or None.
         run_dir: the run folder (where a grammar run's per-morphology rows go), or None for none.
     """
 
-    def __init__(self, cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> None:
-        self.cfg = cfg
-        self.morphology_grid = MorphologyGrid(cfg, cfg.evaluation.morphology_grid) \
-            if robot_kind(cfg) == "grammar" else None
-        self.designs = evaluation_designs(cfg) if self.morphology_grid is None else self.morphology_grid.designs
+    def __init__(self, plan: EvaluationPlan, best: dict | None = None, run_dir: Path | None = None) -> None:
+        self.plan = plan
+        self.morphology_grid = plan.morphologies
+        self.designs = plan.designs if self.morphology_grid is None else self.morphology_grid.designs
         self.run_dir = run_dir
         self.best = best
         self.improved = False  # whether the last evaluation became the best
@@ -161,8 +178,7 @@ class PeriodicEvaluation:
     @property
     def schedule(self) -> tuple[int, int, int]:
         """(every_steps, dense_until, then_every_steps)."""
-        settings = self.cfg.evaluation
-        return settings.every_steps, settings.dense_until, settings.then_every_steps
+        return self.plan.schedule
 
     def due(self, real_env_steps: int, epoch_steps: int) -> bool:
         """Whether the epoch that brought the run to ``real_env_steps`` (``epoch_steps`` of them
@@ -174,14 +190,14 @@ class PeriodicEvaluation:
         """Evaluates if the epoch that just brought the run to ``real_env_steps`` crossed a
         schedule point (else returns no metrics)."""
         self.improved = False
-        epoch_steps = frames_per_epoch(self.cfg)  # this epoch's real steps
+        epoch_steps = self.plan.epoch_steps  # this epoch's real steps
         if not self.due(real_env_steps, epoch_steps):
             return {}
         extra = {}
         started = time.perf_counter()
         if self.morphology_grid is None:
-            summary = summarise(evaluate_on_designs(policy, env_kwargs(self.cfg), self.designs, episodes_per_design=1,
-                                                    seed=self.cfg.seed))
+            summary = summarise(evaluate_on_designs(policy, self.plan.env_kwargs, list(self.designs),
+                                                    episodes_per_design=1, seed=self.plan.seed))
             cells = len(self.designs)
         else:
             summary, results = self.morphology_grid(policy)
@@ -198,7 +214,7 @@ class PeriodicEvaluation:
             columns.GRID_WALKING: float(summary["walking_designs"]),
             columns.GRID_REWARD: summary["mean_episode_reward"],
             columns.EVAL_EPISODES: float(episodes),
-            columns.EVAL_ENV_STEPS: float(episodes * self.cfg.robot.episode_length),
+            columns.EVAL_ENV_STEPS: float(episodes * self.plan.episode_length),
             columns.EVAL_SECONDS: time.perf_counter() - started,
             **extra,
         }
@@ -215,17 +231,19 @@ class ReturnEvaluation(PeriodicEvaluation):
     walker's grid (:class:`PeriodicEvaluation`), the best one by mean return. Its rows:
     ``eval/mean_return``, ``eval/min_return``, the episodes so far and its seconds."""
 
-    def __init__(self, cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> None:
-        self.cfg, self.best, self.run_dir, self.improved = cfg, best, run_dir, False
-        self.task = gym_task(cfg)
+    def __init__(self, plan: EvaluationPlan, best: dict | None = None, run_dir: Path | None = None) -> None:
+        if plan.gym is None:
+            raise ValueError("a ReturnEvaluation evaluates a gym task: the plan has none (env=gym)")
+        self.plan, self.best, self.run_dir, self.improved = plan, best, run_dir, False
+        self.task = plan.gym
 
     def __call__(self, epoch: int, real_env_steps: int, policy) -> dict[str, float]:
         self.improved = False
-        epoch_steps = frames_per_epoch(self.cfg)
+        epoch_steps = self.plan.epoch_steps
         if not self.due(real_env_steps, epoch_steps):
             return {}
         started = time.perf_counter()
-        returns = evaluate_returns(policy, self.task.id, self.task.evaluation_episodes, self.cfg.seed,
+        returns = evaluate_returns(policy, self.task.id, self.task.evaluation_episodes, self.plan.seed,
                                    self.task.episode_length)
         mean = sum(returns) / len(returns)
         episodes = evaluations_done(real_env_steps, epoch_steps, *self.schedule) * len(returns)
@@ -235,10 +253,10 @@ class ReturnEvaluation(PeriodicEvaluation):
                 columns.EVAL_EPISODES: float(episodes), columns.EVAL_SECONDS: time.perf_counter() - started}
 
 
-def make_evaluation(cfg: DictConfig, best: dict | None = None, run_dir: Path | None = None) -> PeriodicEvaluation:
+def make_evaluation(plan: EvaluationPlan, best: dict | None = None, run_dir: Path | None = None) -> PeriodicEvaluation:
     """The run's periodic evaluation: the walker's design grid, or a gym task's returns."""
-    evaluation = ReturnEvaluation if env_kind(cfg) == GYM else PeriodicEvaluation
-    return evaluation(cfg, best=best, run_dir=run_dir)
+    evaluation = PeriodicEvaluation if plan.gym is None else ReturnEvaluation
+    return evaluation(plan, best=best, run_dir=run_dir)
 
 
 def describe_best(best: dict) -> str:
@@ -248,7 +266,7 @@ def describe_best(best: dict) -> str:
     return f"epoch {best['epoch']}, grid mean {best['grid_mean']:.2f} m, worst design {best['grid_min']:.2f} m"
 
 
-def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title: str) -> dict:
+def evaluate_final(plan: EvaluationPlan, checkpoint_path: Path, run_dir: Path, title: str) -> dict:
     """The saved policy on the evaluation grid (``evaluation.episodes`` per design): CSV, heatmaps,
     the training curve, and the summary. For ``robot=grammar``: every morphology of
     ``evaluation.morphologies`` on the ``evaluation.grid`` design grid (deterministic, one episode
@@ -256,21 +274,21 @@ def evaluate_final(cfg: DictConfig, checkpoint_path: Path, run_dir: Path, title:
     the summary over all cells with the per-morphology figures."""
     out = run_dir / "evaluation"
     loaded = load_policy(checkpoint_path)
-    if env_kind(cfg) == GYM:  # the deterministic policy's return in env.evaluation_episodes episodes
-        task = gym_task(cfg)
-        returns = evaluate_returns(loaded.policy, task.id, task.evaluation_episodes, cfg.seed, task.episode_length)
+    if plan.gym is not None:  # the deterministic policy's return in env.evaluation_episodes episodes
+        task = plan.gym
+        returns = evaluate_returns(loaded.policy, task.id, task.evaluation_episodes, plan.seed, task.episode_length)
         out.mkdir(parents=True, exist_ok=True)
         (out / "returns.csv").write_text("episode,return\n" + "".join(f"{i},{r}\n" for i, r in enumerate(returns)))
         summary = {"mean_return": sum(returns) / len(returns), "min_return": min(returns),
                    "max_return": max(returns), "episodes": len(returns)}
-    elif robot_kind(cfg) == "grammar":
-        summary, results = MorphologyGrid(cfg, cfg.evaluation.grid)(loaded.policy, progress=True)
+    elif plan.final_morphologies is not None:
+        summary, results = plan.final_morphologies(loaded.policy, progress=True)
         write_morphology_csvs(results, out)
     else:
-        results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), evaluation_designs(cfg),
-                                      episodes_per_design=cfg.evaluation.episodes, seed=cfg.seed, progress=True)
+        results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), list(plan.designs),
+                                      episodes_per_design=plan.final_episodes, seed=plan.seed, progress=True)
         write_csv(results, out / "designs.csv")
-        plot_heatmaps(results, out, title=f"{title} seed {cfg.seed}")
+        plot_heatmaps(results, out, title=f"{title} seed {plan.seed}")
         summary = summarise(results)
     metrics_csv = run_dir / columns.FILE_NAME
     if metrics_csv.is_file():
