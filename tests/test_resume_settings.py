@@ -118,12 +118,29 @@ def test_what_a_resume_cannot_change_is_refused_by_name(command_line, message, t
 def test_a_setting_newer_than_the_checkpoint_takes_todays_default_and_says_so(tmp_path, capsys):
     checkpoint = checkpoint_of(tmp_path, "algo.max_kl=0.03")
     state = torch.load(checkpoint, weights_only=False)
-    del state["config"]["algo"]["fisher_fraction"]
+    del state["config"]["algo"]["max_consecutive_skips"]
     save_checkpoint(checkpoint, state)
     cfg = resumed(checkpoint)
-    assert (cfg.algo.fisher_fraction, cfg.algo.max_kl) == (1.0, 0.03)
-    assert resume_lines(capsys.readouterr().out) == ["resume: algo.fisher_fraction=1.0: newer than the checkpoint, "
-                                                     "this version's default"]
+    assert cfg.algo.max_kl == 0.03
+    default = cfg.algo.max_consecutive_skips
+    assert resume_lines(capsys.readouterr().out) == [f"resume: algo.max_consecutive_skips={default}: newer than the "
+                                                     "checkpoint, this version's default"]
+
+
+def test_a_config_from_before_a_setting_gets_what_its_run_did_not_today_s_default(tmp_path, capsys):
+    # critic_fit: today a MOE run fits its critic in a second process; before the setting, inline.
+    checkpoint = checkpoint_of(tmp_path, "source=moe")
+    state = torch.load(checkpoint, weights_only=False)
+    for key in ("critic_fit", "fisher_fraction", "advantage_groups"):
+        del state["config"]["algo"][key]
+    del state["config"]["env"]
+    save_checkpoint(checkpoint, state)
+    config = load_checkpoint(checkpoint)["config"]
+    assert (config["algo"]["critic_fit"], config["algo"]["fisher_fraction"], config["algo"]["advantage_groups"],
+            config["env"]) == ("inline", 1.0, None, {"kind": "walker"})
+    cfg = resumed(checkpoint)
+    assert cfg.algo.critic_fit == "inline"
+    assert not [line for line in resume_lines(capsys.readouterr().out) if "newer than the checkpoint" in line]
 
 
 def test_a_checkpoint_from_before_group_choices_were_saved_resumes_with_its_own_groups(tmp_path):

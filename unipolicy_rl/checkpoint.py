@@ -182,14 +182,44 @@ class RunCheckpoints:
 
 
 def migrate(state: dict) -> dict:
-    """A checkpoint of any earlier format in the current layout, one format at a time: the one
-    place that knows the old layouts."""
+    """A checkpoint of any earlier format in the current layout, one format at a time, its config
+    given the settings added after it was written (:func:`settings_of_its_time`): the one place
+    that knows the old layouts and configs."""
     state = dict(state)
     if state.get("format", 1) < 3:
         state = _format_3(state)
     if state["format"] < 4:
         state = {**state, "format": 4, "choices": _choices_of(state["config"])}
-    return state
+    return {**state, "config": settings_of_its_time(state["config"])}
+
+
+# Settings added after runs had been saved, each with the value that means what those runs did.
+# (node, key, value, which configs it applies to)
+SETTINGS_BEFORE_THEY_EXISTED = (
+    ("algo", "name", "trpo", lambda config: True),  # the first runs were TRPO's
+    ("policy", "name", "mlp", lambda config: True),  # before the policy group: the flat MLPs
+    ("env", "kind", "walker", lambda config: True),  # before env=gym: the walker
+    # TRPO's and PPO's: advantages standardised over the whole batch, the Fisher product on the whole
+    # batch, the critic fitted in the update
+    ("algo", "advantage_groups", None, lambda config: config["algo"]["name"] in ("trpo", "ppo")),
+    ("algo", "fisher_fraction", 1.0, lambda config: config["algo"]["name"] == "trpo"),
+    ("algo", "critic_fit", "inline", lambda config: config["algo"]["name"] in ("trpo", "ppo")),
+    # grammar robots: links fill the first token slots in link order
+    ("robot", "token_layout", "packed", lambda config: config.get("robot", {}).get("kind") == "grammar"),
+)
+
+
+def settings_of_its_time(config: dict) -> dict:
+    """``config`` with every setting of :data:`SETTINGS_BEFORE_THEY_EXISTED` it lacks, set to what its
+    run did before the setting existed; the builders then read every setting as today's configs
+    have it."""
+    config = {key: dict(value) if isinstance(value, dict) else value for key, value in config.items()}
+    for node, key, value, applies in SETTINGS_BEFORE_THEY_EXISTED:
+        if not isinstance(config.get(node), dict):
+            config[node] = {}
+        if key not in config[node] and applies(config):
+            config[node][key] = value
+    return config
 
 
 def _format_3(old: dict) -> dict:

@@ -206,9 +206,8 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
         actor, critic = make_actor_critic(cfg, observation_dim, action_dim)
         normalizer, statistics = make_observation_norm(observation_dim), ObservationStatistics(observation_dim)
         statistics_keys = ("observation",)
-    # (a config from before advantage_groups standardises over the whole batch, as it did)
     loss = TRPOLoss(actor, critic, normalize_advantage=algo.normalize_advantage, entropy_coeff=algo.entropy_coeff,
-                    advantage_groups=algo.get("advantage_groups"))
+                    advantage_groups=algo.advantage_groups)
     loss.make_value_estimator(gamma=algo.gamma, lmbda=algo.lmbda)
     generator = torch.Generator().manual_seed(cfg.seed)
     ppo = algo.name == "ppo"
@@ -216,7 +215,7 @@ def make_trpo_learner(cfg: DictConfig, observation_dim: int, action_dim: int) ->
         loss, trust_region=None if ppo else make_trust_region(cfg), critic_lr=algo.critic_lr,
         critic_epochs=algo.critic_epochs, critic_minibatch_size=algo.critic_minibatch_size, generator=generator,
         clipped_step=ClippedStep(loss, actor, clipped_surrogate(cfg), generator) if ppo else None,
-        critic_fit=algo.get("critic_fit", "inline"),
+        critic_fit=algo.critic_fit,
     )
     return TRPOLearner(actor, critic, updater, normalizer, make_collecting_policy(normalizer, actor), statistics,
                        algo.normalizer_refresh, algo.max_consecutive_skips, statistics_keys=statistics_keys)

@@ -58,8 +58,8 @@ CRITIC_BEFORE_THE_SETTING = {"token_transformer": "transformer", "token_mlp": "p
 
 
 def policy_architecture(cfg: DictConfig) -> str:
-    """``cfg.policy.name``, ``mlp`` for a config from before the ``policy`` group; unknown names refused."""
-    name = OmegaConf.select(cfg, "policy.name", default="mlp")
+    """``cfg.policy.name``; unknown names refused."""
+    name = cfg.policy.name
     if name not in FLAT_POLICIES + TOKEN_POLICIES:
         raise ValueError(f"policy.name must be one of {FLAT_POLICIES + TOKEN_POLICIES}, got {name!r}")
     return name
@@ -118,7 +118,7 @@ def make_policy_actor(cfg: DictConfig, observation_dim: int, action_dim: int) ->
     if (architecture := policy_architecture(cfg)) != "mlp":
         raise ValueError(f"policy={architecture} reads link tokens, not a flat observation of {observation_dim}: "
                          "build it with make_token_actor_critic on an env that writes tokens (robot=grammar)")
-    if algo.get("name", "trpo") in ON_POLICY_ALGOS:  # (checkpoints from before algo.name are TRPO's)
+    if algo.name in ON_POLICY_ALGOS:
         return make_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation, algo.init_log_std,
                           observation_key=NORMALIZED_OBSERVATION)
     return make_tanh_actor(observation_dim, action_dim, tuple(algo.actor_hidden), algo.activation,
@@ -167,7 +167,7 @@ def make_token_actor(cfg: DictConfig, token_features: int, max_tokens: int) -> T
     if architecture not in TOKEN_POLICIES:
         raise ValueError(f"make_token_actor builds {TOKEN_POLICIES}, got policy={architecture}")
     algo = cfg.algo
-    if algo.get("name", "trpo") not in TOKEN_POLICY_ALGOS:
+    if algo.name not in TOKEN_POLICY_ALGOS:
         raise ValueError(f"the token policies are Gaussian policies for {' or '.join(TOKEN_POLICY_ALGOS)}, "
                          f"not for algo={algo.name}")
     if architecture == "token_transformer":

@@ -36,10 +36,9 @@ from unipolicy_rl.world_models.token_layout import TOKEN_STATE
 def make_trust_region(cfg: DictConfig) -> TrustRegion:
     """TRPO's policy-step settings from ``algo`` (``conf/algo/trpo.yaml``)."""
     algo = cfg.algo
-    # (a config from before fisher_fraction computes the Fisher product on the whole batch, as it did)
     return TrustRegion(max_kl=algo.max_kl, damping=algo.damping, cg_iters=algo.cg_iters,
                        backtrack_factor=algo.backtrack_factor, max_backtracks=algo.max_backtracks,
-                       fisher_fraction=algo.get("fisher_fraction", 1.0))
+                       fisher_fraction=algo.fisher_fraction)
 
 
 def clipped_surrogate(cfg: DictConfig) -> ClippedSurrogate:

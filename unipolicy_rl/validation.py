@@ -263,7 +263,7 @@ def _distillation_has_specialists(cfg: DictConfig) -> str | None:
 
 def _advantage_groups_exist(cfg: DictConfig) -> str | None:
     """``algo.advantage_groups=morphology`` needs a robot that writes its morphology, and a normalisation."""
-    groups = cfg.algo.get("advantage_groups")
+    groups = cfg.algo.get("advantage_groups")  # (on-policy algos only)
     if groups is None:
         return None
     if not cfg.algo.normalize_advantage:
@@ -286,7 +286,7 @@ def _world_model_reads_the_robot(cfg: DictConfig) -> str | None:
         return None  # (a missing group is _model_source_groups' to report)
     state = world_model.get("model_state")
     model = str(OmegaConf.select(world_model, "model._target_")).rsplit(".", 1)[-1]
-    source = cfg.source.get("name", cfg.source.kind)
+    source = cfg.source.name
     if robot_kind(cfg) == "grammar" and state != TOKEN_STATE:
         return (f"source={source} with robot=grammar: its world model, {model} (world_model.model_state={state}), "
                 f"predicts one robot's flat state, and robot=grammar observes robots of many morphologies as "
@@ -309,7 +309,7 @@ def _model_source_groups(cfg: DictConfig) -> str | None:
                 return (f"a model-based source needs a {group} config (e.g. world_model=moe, which selects its "
                         f"imagination)")
         return None
-    source = cfg.source.get("name", cfg.source.kind)
+    source = cfg.source.name
     if cfg.get("world_model") is not None:
         return (f"world_model is read by a model-based source only, and source={source} trains on the real robots: "
                 f"drop world_model=..., or choose a model source (source=moe or source=pce, which select their "

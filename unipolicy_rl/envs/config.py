@@ -92,8 +92,8 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
     most links any robot of the split's size limits may have, so held-out robots fit the same
     tokens (and a padded-MLP policy, whose weights are tied to the padding, runs on every side).
     ``robot.token_layout: structural`` fixes each link's slot by its role, with room for every
-    robot of the split's size limits (:class:`StructuralLayout`); ``packed`` (the default, and
-    what configs from before the setting mean) fills the first slots in link order."""
+    robot of the split's size limits (:class:`StructuralLayout`); ``packed`` (the default) fills
+    the first slots in link order."""
     if robot_kind(cfg) != "grammar":
         raise ValueError(f"a MorphologyWalkerEnv needs robot=grammar, got robot kind {robot_kind(cfg)!r}")
     robot = cfg.robot
@@ -101,7 +101,7 @@ def morphology_env_kwargs(cfg: DictConfig, side: str | None = None) -> dict:
     limits = instantiate(robot.split.train_limits, _convert_="all"), instantiate(robot.split.held_out_limits,
                                                                                  _convert_="all")
     max_links = robot.max_links if robot.max_links is not None else max(limit.max_links for limit in limits)
-    layout = robot.get("token_layout", "packed")
+    layout = robot.token_layout
     if layout not in TOKEN_LAYOUTS:
         raise ValueError(f"robot.token_layout must be one of {TOKEN_LAYOUTS}, got {layout!r}")
     if robot.max_links is not None and layout == "packed":  # (a structural layout's slots: the env checks them)
