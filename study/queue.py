@@ -59,11 +59,10 @@ import yaml  # noqa: E402
 from study.league.levels import LEVELS  # noqa: E402
 from study.records import run_evaluations  # noqa: E402
 from unipolicy_rl.report.runs import ReportError, archive_run, load_run, restore_run  # noqa: E402
+from unipolicy_rl.training.progress import FINAL_EVALUATIONS  # noqa: E402
 
 PLAN = Path(__file__).with_name("league_plan.yaml")
 CHECKPOINT = "checkpoint.pt"
-# train.py's evaluation after the last epoch: the walker's design grid, or a gym task's returns
-FINAL_EVALUATIONS = (Path("evaluation") / "designs.csv", Path("evaluation") / "returns.csv")
 FIXED_OVERRIDES = ("checkpoint_every=5", "progress_bar=false")
 LEVEL_CHECK_SECONDS = 30.0  # how often a running run's metrics are read for --stop-at-level
 LEVELS_BY_NAME = {level.label.strip("()"): level for level in LEVELS}  # "a", "b", "c" -> the league's level

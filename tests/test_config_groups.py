@@ -23,8 +23,9 @@ COMPANIONS: dict[str, list[str]] = {
     **{f"world_model={name}": ["source=moe"] for name in ("moe", "moe_thesis")},
     **{f"world_model={name}": ["source=pce"] for name in ("pce", "pce_sparse", "pce_thesis")},
 }
-# Sub-folders of a group that are not options of it: world_model=moe reads world_model/robot/<robot>.yaml.
-NOT_OPTIONS = {"world_model/robot"}
+# Sub-folders of a group that are not options of it: world_model=moe reads world_model/robot/<robot>.yaml,
+# world_model=pce world_model/pce_env/<env>.yaml.
+NOT_OPTIONS = {"world_model/robot", "world_model/pce_env"}
 
 
 def composed(overrides, hydra_config=False):

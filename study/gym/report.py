@@ -39,6 +39,13 @@ def task_of(entry: str) -> str:
     return f"{name}-{version}"
 
 
+def entry_of(record: Record, task: str) -> str:
+    """The row a run belongs to: its folder (the study plan's entry, e.g. ``pendulum-pce-trpo-walker-basis``,
+    so two plan entries that share a run name stay apart), less a leading ``<task>-``."""
+    folder = record.name.split("/")[0]
+    return folder[len(task) + 1:] if folder.startswith(f"{task}-") else folder
+
+
 def steps_to(record: Record, level: float, in_a_row: int) -> tuple[float, bool]:
     """(real env steps, reached): where the run's returns were first ``in_a_row`` evaluations in a
     row at or above ``level`` (credited at the last of them); else (its last evaluation's steps, False)."""
@@ -99,14 +106,14 @@ def table(records: list[Record], task: str) -> str:
     by_entry: dict[str, list[Record]] = defaultdict(list)
     for record in records:
         if task_of(record.entry) == task:
-            by_entry[record.entry].append(record)
+            by_entry[entry_of(record, task)].append(record)
     head = ["entry", "seeds"]
     head += [f"reaches {level:g}" for level in levels] + [f"holds {level:g}" for level in levels]
     head += [f"return at {budget:,}" for budget in budgets]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for entry, runs in sorted(by_entry.items()):
         runs.sort(key=lambda record: record.seed)
-        row = [entry[len(task) + 1:], ",".join(str(record.seed) for record in runs)]
+        row = [entry, ",".join(str(record.seed) for record in runs)]
         row += [_steps_cell([steps_to(record, level, 1) for record in runs]) for level in levels]
         row += [_steps_cell([steps_to(record, level, HOLD) for record in runs]) for level in levels]
         row += [_return_cell([return_at(record, budget) for record in runs]) for budget in budgets]

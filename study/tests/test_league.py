@@ -185,6 +185,17 @@ def test_a_run_short_of_either_threshold_never_walks(runs):
     assert [e.steps for e in evaluations[:3]] == [2000, 4000, 6000] and evaluations[-1].steps == 60_000
 
 
+def test_a_gym_run_is_finished_by_its_final_returns_and_its_archive_keeps_no_checkpoint(tmp_path):
+    path = write_run(tmp_path, "Pendulum-v1-moe-trpo", "model", 0, [(0, 1.0, 0.0)], 20_000)
+    torch.save({"epoch": 20, "policy": {"actor": torch.ones(2)}}, path / "checkpoint.pt")
+    assert not load_run(path, path.name).finished
+    (path / "evaluation").mkdir()
+    (path / "evaluation" / "returns.csv").write_text("episode,return\n0,-150.0\n")
+    assert load_run(path, path.name).finished
+    files = archive_run(path, tmp_path / "archive", checkpoint_limit=2**20)
+    assert Path("checkpoint.pt") not in files and Path("evaluation/returns.csv") in files
+
+
 def test_a_run_resumed_with_a_larger_budget_is_unfinished_until_it_gets_there(tmp_path):
     """Its final evaluation of the first budget stays in the folder; the run is not done meanwhile."""
     path = write_run(tmp_path, "se-sac", "real", 0, [(0, 1.0, 0.0)], 20_000)

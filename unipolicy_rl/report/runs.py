@@ -28,6 +28,8 @@ from unipolicy_rl.envs import DesignDistribution
 from unipolicy_rl.evaluation import DesignResult, read_csv
 from unipolicy_rl.training.metrics_file import EPOCH, without_redone_epochs
 from unipolicy_rl.training.metrics_file import FILE_NAME as METRICS
+from unipolicy_rl.training.progress import FINAL_DESIGNS as DESIGNS
+from unipolicy_rl.training.progress import FINAL_EVALUATIONS, FINAL_RETURNS
 
 CONFIG = Path(".hydra") / "config.yaml"
 HYDRA_CONFIG = Path(".hydra") / "hydra.yaml"
@@ -36,7 +38,6 @@ CHECKPOINT = "checkpoint.pt"
 # A finished run's final policy alone (no learner, collector or world model state: not resumable),
 # what an archive carrying checkpoints keeps of it, for runs that build on it (algo=distill's teachers).
 POLICY = "policy.pt"
-DESIGNS = Path("evaluation") / "designs.csv"
 SWEEP_FILE = "multirun.yaml"  # Hydra writes it at the root of every multirun
 RUN_MARKERS = (CONFIG, Path(METRICS), Path(CHECKPOINT))
 # A run's record: the small files the reports read (not its checkpoint or buffer), what an archive keeps.
@@ -85,10 +86,11 @@ class Run:
 
     @property
     def finished(self) -> bool:
-        """Trained to its budget and evaluated: its final grid evaluation exists and its last epoch
-        is the configured ``epochs``. A run resumed with a larger budget (``epochs=300`` after
-        120) keeps the first budget's final evaluation until it gets there: not finished meanwhile."""
-        if self.designs is None:
+        """Trained to its budget and evaluated: its final evaluation exists (the grid's, or a gym
+        task's returns) and its last epoch is the configured ``epochs``. A run resumed with a larger
+        budget (``epochs=300`` after 120) keeps the first budget's final evaluation until it gets
+        there: not finished meanwhile."""
+        if self.designs is None and not (self.path / FINAL_RETURNS).is_file():
             return False
         logged = self.last_epoch + (1 if self.last_row_cut else 0)  # a row cut short was the next epoch's
         return self.epochs is None or not self.rows or logged >= self.epochs
@@ -202,7 +204,7 @@ def archive_run(run: Path, destination: Path, checkpoint_limit: int = 0) -> list
     files = record_files(run)
     if Path(METRICS) not in files:
         raise ReportError(f"{run}: no {METRICS}, so nothing to archive (it never finished an epoch)")
-    checkpoint, finished = run / CHECKPOINT, (run / DESIGNS).is_file()
+    checkpoint, finished = run / CHECKPOINT, any((run / name).is_file() for name in FINAL_EVALUATIONS)
     if checkpoint_limit and not finished and checkpoint.is_file() and checkpoint.stat().st_size <= checkpoint_limit:
         files.append(Path(CHECKPOINT))
     for name in files:

@@ -100,6 +100,11 @@ def episode_metrics(batch: TensorDictBase, plan: EvaluationPlan) -> dict[str, fl
 
 # robot=grammar: the periodic evaluation's per-morphology rows, in the run's evaluation folder.
 PERIODIC_MORPHOLOGIES = Path("evaluation") / "periodic_morphologies.csv"
+# The final evaluation, in the run's folder: one row per design (and morphology) of the grid, or
+# for env=gym one per episode's return. Either file marks a run trained to its budget.
+FINAL_DESIGNS = Path("evaluation") / "designs.csv"
+FINAL_RETURNS = Path("evaluation") / "returns.csv"
+FINAL_EVALUATIONS = (FINAL_DESIGNS, FINAL_RETURNS)
 
 
 def evaluation_points(real_env_steps: int, every_steps: int, dense_until: int, then_every_steps: int) -> int:
@@ -278,7 +283,7 @@ def evaluate_final(plan: EvaluationPlan, checkpoint_path: Path, run_dir: Path, t
         task = plan.gym
         returns = evaluate_returns(loaded.policy, task.id, task.evaluation_episodes, plan.seed, task.episode_length)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "returns.csv").write_text("episode,return\n" + "".join(f"{i},{r}\n" for i, r in enumerate(returns)))
+        (run_dir / FINAL_RETURNS).write_text("episode,return\n" + "".join(f"{i},{r}\n" for i, r in enumerate(returns)))
         summary = {"mean_return": sum(returns) / len(returns), "min_return": min(returns),
                    "max_return": max(returns), "episodes": len(returns)}
     elif plan.final_morphologies is not None:
@@ -287,7 +292,7 @@ def evaluate_final(plan: EvaluationPlan, checkpoint_path: Path, run_dir: Path, t
     else:
         results = evaluate_on_designs(loaded.policy, dict(loaded.env_kwargs), list(plan.designs),
                                       episodes_per_design=plan.final_episodes, seed=plan.seed, progress=True)
-        write_csv(results, out / "designs.csv")
+        write_csv(results, run_dir / FINAL_DESIGNS)
         plot_heatmaps(results, out, title=f"{title} seed {plan.seed}")
         summary = summarise(results)
     metrics_csv = run_dir / columns.FILE_NAME
