@@ -35,7 +35,7 @@ from unipolicy_rl.checkpoint import RunCheckpoints, check_resumable, load_checkp
 from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
 from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
-from unipolicy_rl.learners.initial_policy import policy_to_start_from
+from unipolicy_rl.initial_policy import policy_to_start_from
 from unipolicy_rl.learners.policy_average import end_of_epoch, learning_policy
 from unipolicy_rl.objectives.adaptive_kl import imagined_trust_region
 from unipolicy_rl.resume import named_keys, record_resumed_config, settings_for_resume, with_the_runs_groups

@@ -30,8 +30,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from unipolicy_rl.collectors import transitions
+from unipolicy_rl.env_factories import grammar_morphologies, morphology_env_kwargs
 from unipolicy_rl.envs import MorphologyWalkerEnv
-from unipolicy_rl.envs.config import grammar_morphologies, morphology_env_kwargs
 from unipolicy_rl.envs.gait import RandomPhaseGait
 from unipolicy_rl.envs.link_tokens import MOVING
 from unipolicy_rl.envs.tokens import FEATURE_INDEX, real_tokens

@@ -175,7 +175,7 @@ def batch_explained_variance(learner, batch: TensorDictBase, target: torch.Tenso
 
 
 def compare_critics(args) -> None:
-    from unipolicy_rl.envs.config import make_morphology_env
+    from unipolicy_rl.env_factories import make_morphology_env
     from unipolicy_rl.factories import make_learner
 
     unknown = sorted(set(args.critics) - set(CRITIC_VARIANTS))

@@ -9,8 +9,8 @@ from omegaconf import OmegaConf
 from test_train import load_checkpoint, load_policy, run_train, straight_and_resumed
 
 from unipolicy_rl.checkpoint import CHECKPOINT_FORMAT, save_checkpoint
+from unipolicy_rl.env_factories import morphology_env_kwargs
 from unipolicy_rl.envs import MorphologyWalkerEnv
-from unipolicy_rl.envs.config import morphology_env_kwargs
 from unipolicy_rl.envs.tokens import ACTION_MASK, MORPHOLOGY
 from unipolicy_rl.factories import make_learner, probe_dimensions
 from unipolicy_rl.learners.base import policy_state

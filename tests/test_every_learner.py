@@ -11,7 +11,7 @@ from test_config_groups import CONF
 from test_distillation import SPLIT, write_teacher
 
 from unipolicy_rl.collectors import truncate_last_step
-from unipolicy_rl.envs.config import env_builder
+from unipolicy_rl.env_factories import env_builder
 from unipolicy_rl.factories import make_learner, probe_dimensions
 from unipolicy_rl.registry import LEARNER_NAMES
 

@@ -16,11 +16,11 @@ from torchrl.envs import GymEnv
 from torchrl.envs.utils import check_env_specs
 
 from unipolicy_rl.collectors import TransitionBuffer
+from unipolicy_rl.env_factories import gym_task
 from unipolicy_rl.envs.gym_task import (
     GymTask,
     evaluate_returns,
     gym_episode_metrics,
-    gym_task,
     make_gym_env,
     world_model_reward,
     world_model_termination,

@@ -74,3 +74,17 @@ class _OneEpoch:
 
     def state_dict(self) -> dict:
         return {"epoch": 1, "real_env_steps": 0}
+
+
+# The layers below the builders: they take typed settings, never Hydra's config (docs/architecture.md).
+BELOW_THE_BUILDERS = ("envs", "robots", "world_models", "polynomial_chaos", "collectors", "learners", "objectives",
+                      "evaluation", "training", "cpu_speed", "uq")
+
+
+def test_the_layers_below_the_builders_read_no_hydra_config():
+    package = Path(__file__).resolve().parents[1] / "unipolicy_rl"
+    readers = [str(path.relative_to(package)) for layer in BELOW_THE_BUILDERS
+               for path in sorted((package / layer).rglob("*.py"))
+               if any(line.lstrip().startswith(("import omegaconf", "from omegaconf", "import hydra", "from hydra"))
+                      for line in path.read_text().splitlines())]
+    assert readers == []

@@ -1,4 +1,4 @@
-"""init_policy: a new run starts from another run's policy (learners/initial_policy.py)."""
+"""init_policy: a new run starts from another run's policy (initial_policy.py)."""
 
 from pathlib import Path
 
@@ -10,7 +10,7 @@ from tensordict import TensorDict
 
 from unipolicy_rl.checkpoint import CHECKPOINT_FORMAT, save_checkpoint
 from unipolicy_rl.factories import make_learner
-from unipolicy_rl.learners.initial_policy import policy_to_start_from
+from unipolicy_rl.initial_policy import policy_to_start_from
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 DIMS = (18, 4)  # the vertebrate's observation and action sizes

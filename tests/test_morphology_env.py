@@ -9,8 +9,8 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from unipolicy_rl.env_factories import env_kwargs, make_morphology_env
 from unipolicy_rl.envs import BatchedWalkerEnv, DesignDistribution, MorphologyWalkerEnv, PhysicsSettings, walking_reward
-from unipolicy_rl.envs.config import env_kwargs, make_morphology_env
 from unipolicy_rl.envs.reward import BASE_X, BASE_X_DOT, BASE_Y, BASE_Z
 from unipolicy_rl.envs.slot_layout import StructuralLayout
 from unipolicy_rl.envs.tokens import (

@@ -253,7 +253,7 @@ def test_ppo_names_its_config_keys():
 
 
 def test_robot_slots_and_driven_joints_are_checked_at_start_up_by_their_keys():
-    from unipolicy_rl.envs.config import morphology_env_kwargs
+    from unipolicy_rl.env_factories import morphology_env_kwargs
     from unipolicy_rl.validation import check_settings
 
     grammar = ["robot=grammar", "policy=token_mlp", "robot.split.train_size=2", "robot.split.held_out_size=1"]

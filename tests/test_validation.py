@@ -222,7 +222,7 @@ def test_a_model_based_grammar_run_takes_the_ensemble_conditioned_on_the_morphol
 
 
 def test_a_specialist_run_trains_and_evaluates_on_one_morphology_of_its_side():
-    from unipolicy_rl.envs.config import grammar_morphologies, morphology_env_kwargs
+    from unipolicy_rl.env_factories import grammar_morphologies, morphology_env_kwargs
 
     cfg = composed([*GRAMMAR, "policy=token_mlp", "robot.morphologies=held_out", "robot.specialist=1",
                     "evaluation.morphologies=held_out"])

@@ -27,8 +27,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from unipolicy_rl.env_factories import env_builder
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
-from unipolicy_rl.envs.config import env_builder
 from unipolicy_rl.policy import (
     TOKEN_POLICIES,
     make_collecting_policy,
@@ -273,6 +273,11 @@ class LoadedPolicy:
     config: dict
     epoch: int
     env_class: type = BatchedWalkerEnv
+
+    @property
+    def specialist(self) -> int | None:
+        """The robot a grammar specialist trained on alone (``robot.specialist``), else None."""
+        return (self.config.get("robot") or {}).get("specialist")
 
     def act(self, observation: np.ndarray, deterministic: bool = True) -> np.ndarray:
         """Action for one WalkerEnv observation (or a batch of them); a flat policy's only."""

@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 
 from unipolicy_rl.command_line import check_checkpoint_arguments, run_checked, run_command_line
+from unipolicy_rl.env_factories import GRAMMAR_SIDES
 from unipolicy_rl.envs import DesignDistribution, MorphologyWalkerEnv
-from unipolicy_rl.envs.config import GRAMMAR_SIDES
 from unipolicy_rl.envs.design import SE_DENSITY_RANGE, SE_LENGTH_RANGE
 from unipolicy_rl.evaluation import (
     evaluate_on_designs,
@@ -105,7 +105,7 @@ def _run_morphologies(args: argparse.Namespace, loaded, designs: list, out_dir: 
     """A ``robot=grammar`` policy on every morphology of one side of its split."""
     from omegaconf import OmegaConf
 
-    from unipolicy_rl.envs.config import morphology_env_kwargs
+    from unipolicy_rl.env_factories import morphology_env_kwargs
 
     cfg = OmegaConf.create(loaded.config)
     side = args.morphologies or OmegaConf.select(cfg, "evaluation.morphologies", default="train")

@@ -3,7 +3,7 @@
 train.py builds everything here: the real collector, the learner (``algo``), and for a
 model-based source the world model, its trainer, the replay buffer and the imagination. The
 policy alone (what a checkpoint hands over) is built in :mod:`unipolicy_rl.policy`, and the env
-in :mod:`unipolicy_rl.envs.config`, so loading a policy needs none of this module.
+in :mod:`unipolicy_rl.env_factories`, so loading a policy needs none of this module.
 """
 
 from __future__ import annotations
@@ -29,9 +29,16 @@ from unipolicy_rl.collectors import (
     truncate_last_step,
 )
 from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
+from unipolicy_rl.env_factories import (
+    env_builder,
+    env_kind,
+    episode_length,
+    frames_per_epoch,
+    gym_task,
+    morphology_env_kwargs,
+)
 from unipolicy_rl.envs import BatchedWalkerEnv, MorphologyWalkerEnv
-from unipolicy_rl.envs.config import env_builder, episode_length, frames_per_epoch, morphology_env_kwargs
-from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, world_model_reward, world_model_termination
+from unipolicy_rl.envs.gym_task import GYM, world_model_reward, world_model_termination
 from unipolicy_rl.envs.tokens import TOKEN_MASK, TOKENS
 from unipolicy_rl.learners import Learner, OffPolicyLearner, TRPOLearner
 from unipolicy_rl.learners.distillation import DistillationLearner, SpecialistTeachers
@@ -110,7 +117,7 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     still ends an episode early, and that robot restarts at once.
 
     ``full_state`` adds the robots' full state (``state``) to every step, for a world model.
-    The env is the config's robot's (:func:`~unipolicy_rl.envs.config.env_builder`): the
+    The env is the config's robot's (:func:`~unipolicy_rl.env_factories.env_builder`): the
     vertebrate's ``BatchedWalkerEnv``, or for ``robot=grammar`` a ``MorphologyWalkerEnv``, whose
     link tokens already hold every link's state (a world model reads them; ``full_state`` adds
     nothing there).

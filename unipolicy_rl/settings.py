@@ -16,15 +16,17 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.device import resolve_device
-from unipolicy_rl.envs import DesignDistribution
-from unipolicy_rl.envs.config import (
+from unipolicy_rl.env_factories import (
+    env_kind,
     env_kwargs,
     episode_length,
     frames_per_epoch,
+    gym_task,
     morphology_env_kwargs,
     robot_kind,
 )
-from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, make_gym_env
+from unipolicy_rl.envs import DesignDistribution
+from unipolicy_rl.envs.gym_task import GYM, make_gym_env
 from unipolicy_rl.learners import OffPolicySettings
 from unipolicy_rl.learners.distillation import DistillationSettings
 from unipolicy_rl.objectives import ClippedSurrogate, TrustRegion

@@ -25,8 +25,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
-from unipolicy_rl.envs.config import GRAMMAR_SIDES, ROBOT_KINDS, robot_kind
-from unipolicy_rl.envs.gym_task import ENV_KINDS, GYM, env_kind, gym_task
+from unipolicy_rl.env_factories import GRAMMAR_SIDES, ROBOT_KINDS, env_kind, gym_task, robot_kind
+from unipolicy_rl.envs.gym_task import ENV_KINDS, GYM
 from unipolicy_rl.envs.morphology import HINGE_TYPES, SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
@@ -426,7 +426,7 @@ def validate_config(cfg: DictConfig) -> None:
     _built("evaluation", lambda: DesignDistribution(tuple(evaluation.length_range), tuple(evaluation.density_range)))
     _built("design", lambda: instantiate(cfg.design))
     if robot_kind(cfg) == "grammar":
-        from unipolicy_rl.envs.config import morphology_env_kwargs
+        from unipolicy_rl.env_factories import morphology_env_kwargs
 
         # The split (drawn once per process), its side and the padding; then the evaluated side.
         _built("robot", lambda: morphology_env_kwargs(cfg))

@@ -111,7 +111,7 @@ def teacher_real_steps(run: Run, root: Path = Path(".")) -> float:
 def split_sides(run: Run) -> dict[str, str]:
     """Each derivation of the run's split -> trained / held_out / train side, not trained on."""
     # Imported here: drawing a split builds robots, which only this question needs.
-    from unipolicy_rl.envs.config import grammar_morphologies
+    from unipolicy_rl.env_factories import grammar_morphologies
 
     robot = run.config["robot"]
     config = OmegaConf.create({**run.config, "robot": {**robot, "specialist": None}})

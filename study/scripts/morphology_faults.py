@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 
-from unipolicy_rl.envs.config import make_morphology_env
+from unipolicy_rl.env_factories import make_morphology_env
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 LINK_STATE = 13  # per link: position 3, orientation quaternion 4, linear velocity 3, angular velocity 3

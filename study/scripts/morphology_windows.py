@@ -30,7 +30,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from unipolicy_rl.envs.config import grammar_morphologies
+from unipolicy_rl.env_factories import grammar_morphologies
 
 
 def seed_folder(run: Path, seed: int) -> Path:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from unipolicy_rl.envs.config import grammar_morphologies, morphology_env_kwargs
+from unipolicy_rl.env_factories import grammar_morphologies, morphology_env_kwargs
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS
 from unipolicy_rl.robots.grammar import describe
 

@@ -147,7 +147,7 @@ def test_a_run_on_the_structural_layout_is_an_entry_of_its_own(runs, tmp_path):
 def test_a_run_cut_to_one_robot_trained_on_that_robot_alone(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from unipolicy_rl.envs.config import grammar_morphologies
+    from unipolicy_rl.env_factories import grammar_morphologies
 
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["source=moe", "robot=grammar", "policy=token_mlp", "robot.specialist=1",
@@ -174,7 +174,7 @@ def test_the_benchmark_prints_the_table_from_real_split_sides(tmp_path, capsys):
     """Through the split itself: a universal run of the config's split, its derivations read from it."""
     from hydra import compose, initialize_config_dir
 
-    from unipolicy_rl.envs.config import grammar_morphologies
+    from unipolicy_rl.env_factories import grammar_morphologies
 
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["robot=grammar", "policy=token_mlp", "robot.split.train_size=3",
@@ -237,7 +237,7 @@ def test_before_any_universal_run_the_figure_shows_each_specialists_median(tmp_p
 
     from hydra import compose, initialize_config_dir
 
-    from unipolicy_rl.envs.config import grammar_morphologies
+    from unipolicy_rl.env_factories import grammar_morphologies
 
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["robot=grammar", "robot.split.train_size=3", "robot.split.held_out_size=2"])

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import gymnasium
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import (
@@ -46,11 +45,6 @@ KNOWN, LEARNED, AUTO, NONE = "known", "learned", "auto", "none"
 # and Hopper's three of the MBPO comparison.
 KNOWN_LEVELS = {"Pendulum": (-200.0,), "InvertedPendulum": (1000.0,), "Hopper": (1000.0, 2500.0, 3000.0),
                 "Walker2d": (1000.0, 2500.0, 3000.0), "HalfCheetah": (1000.0, 3000.0, 5000.0)}
-
-
-def env_kind(cfg: DictConfig) -> str:
-    """``walker`` (the default, and every config from before ``env`` existed) or ``gym``."""
-    return OmegaConf.select(cfg, "env.kind", default=WALKER)
 
 
 def make_gym_env(num_envs: int = 1, *, env_id: str) -> TransformedEnv:
@@ -147,15 +141,6 @@ class GymTask:
 NEVER_TERMINATES = {"Pendulum", "HalfCheetah", "Swimmer", "Reacher", "MountainCarContinuous"}
 
 
-def gym_task(cfg: DictConfig) -> GymTask:
-    """The config's ``env`` node as a :class:`GymTask` (its checks run)."""
-    node = cfg.env
-    levels = node.get("levels")
-    if levels is None:
-        levels = KNOWN_LEVELS.get(str(node.id).split("-")[0], (0.0,))
-    return GymTask(id=str(node.id), frames_per_epoch=node.frames_per_epoch, reward=node.reward,
-                   termination=node.termination, evaluation_episodes=node.evaluation_episodes,
-                   levels=tuple(float(level) for level in levels))
 
 
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
@@ -113,7 +112,7 @@ class SpecialistTeachers:
             if not Path(path).is_file():  # (checked here, not in the settings: a plan names teachers yet to be trained)
                 raise ValueError(f"algo.teachers: no checkpoint at {path!r}")
             loaded = load_policy(path)
-            specialist = OmegaConf.select(OmegaConf.create(loaded.config), "robot.specialist", default=None)
+            specialist = loaded.specialist
             robots = loaded.env_kwargs.get("morphologies", ())
             if specialist is None or len(robots) != 1:
                 raise ValueError(f"algo.teachers: {path} is not a specialist's checkpoint (a robot=grammar run with "

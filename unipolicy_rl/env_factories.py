@@ -3,7 +3,9 @@
 for ``env=gym`` a gymnasium task (:func:`~unipolicy_rl.envs.gym_task.make_gym_env`).
 
 Training, evaluation and a loaded checkpoint all build their robots from here, so a policy is
-always run on the env it was trained on.
+always run on the env it was trained on. One of the builders: it reads Hydra's config, so that
+nothing in :mod:`unipolicy_rl.envs` does (:func:`env_kind`, :func:`gym_task` turn the ``env``
+node into a checked :class:`~unipolicy_rl.envs.gym_task.GymTask`).
 """
 
 from __future__ import annotations
@@ -16,13 +18,29 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
 from unipolicy_rl.envs.batched import BatchedWalkerEnv
-from unipolicy_rl.envs.gym_task import GYM, env_kind, gym_task, make_gym_env
+from unipolicy_rl.envs.gym_task import GYM, KNOWN_LEVELS, WALKER, GymTask, make_gym_env
 from unipolicy_rl.envs.morphology import MorphologyWalkerEnv
 from unipolicy_rl.envs.slot_layout import TOKEN_LAYOUTS, StructuralLayout
 from unipolicy_rl.robots.grammar import Morphology, MorphologySplit
 
 GRAMMAR_SIDES = ("train", "held_out", "all")
 ROBOT_KINDS = ("vertebrate", "grammar")
+
+
+def env_kind(cfg: DictConfig) -> str:
+    """``walker`` (the default, and every config from before ``env`` existed) or ``gym``."""
+    return OmegaConf.select(cfg, "env.kind", default=WALKER)
+
+
+def gym_task(cfg: DictConfig) -> GymTask:
+    """The config's ``env`` node as a :class:`GymTask` (its checks run)."""
+    node = cfg.env
+    levels = node.get("levels")
+    if levels is None:
+        levels = KNOWN_LEVELS.get(str(node.id).split("-")[0], (0.0,))
+    return GymTask(id=str(node.id), frames_per_epoch=node.frames_per_epoch, reward=node.reward,
+                   termination=node.termination, evaluation_episodes=node.evaluation_episodes,
+                   levels=tuple(float(level) for level in levels))
 
 
 def robot_kind(cfg: DictConfig) -> str:

@@ -29,7 +29,7 @@ def policy_to_start_from(cfg: DictConfig, path: str | Path, observation_dim: int
         ValueError: naming ``init_policy``, the file and every setting that differs.
     """
     from unipolicy_rl.checkpoint import load_checkpoint  # (checkpoint imports the policy stack)
-    from unipolicy_rl.envs.config import env_builder
+    from unipolicy_rl.env_factories import env_builder
     from unipolicy_rl.learners.distillation import differing_env_settings
 
     try:
