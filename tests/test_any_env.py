@@ -221,6 +221,36 @@ def test_an_ensemble_learns_pendulums_reward_beside_its_state():
     assert (state - rows["next_state"]).abs().mean() < 0.25 * (rows["next_state"] - rows["state"]).abs().mean()
 
 
+def test_an_ensemble_predicts_the_next_state_itself_where_asked_and_learns_it():
+    env, batch = real_batch(2000)
+    layout = FlatLayout.from_env(env)
+    buffer = TransitionBuffer.for_model(10_000, GaussianEnsemble(layout, 1, members=1, elites=1, hidden=(8,)))
+    buffer.extend(batch, epoch=1)
+    rows = buffer.contents()
+    members = torch.zeros(500, dtype=torch.long)
+    # The targets are what the option says; a head whose mean is the target's own mean predicts that
+    # mean as the next state (next_state), or adds it to the state (change).
+    for target in ("change", "next_state"):
+        model = GaussianEnsemble(layout, 1, members=1, elites=1, hidden=(8,), target=target)
+        targets = model.targets(rows["state"], rows["next_state"])
+        expected = rows["next_state"] - rows["state"] if target == "change" else rows["next_state"]
+        torch.testing.assert_close(targets, expected)
+        model.fit_normalizers(model.inputs(rows["state"], rows["action"], rows["design"]), targets)
+        for parameter in model.network[-1].parameters():
+            nn.init.zeros_(parameter)
+        predicted = model.predict(rows["state"][:500], rows["action"][:500], rows["design"][:500], members, True)
+        mean = targets.mean(0)
+        torch.testing.assert_close(predicted, mean.expand(500, -1) if target == "next_state"
+                                   else rows["state"][:500] + mean, atol=1e-4, rtol=1e-4)
+    torch.manual_seed(0)
+    model = GaussianEnsemble(layout, 1, members=3, elites=2, hidden=(64, 64), target="next_state")
+    ModelTrainer(max_epochs=60, patience=10).fit(model, rows, torch.Generator().manual_seed(0))
+    state = model.predict(rows["state"][:500], rows["action"][:500], rows["design"][:500], members, True)
+    assert (state - rows["next_state"][:500]).abs().mean() < 0.25 * (rows["next_state"] - rows["state"]).abs().mean()
+    with pytest.raises(ValueError, match="target must be one of .*'delta'"):
+        GaussianEnsemble(layout, 1, target="delta")
+
+
 def fitted_plain_model(reward: str):
     """Pendulum's env, a small ensemble fitted on 400 of its real steps (learning the reward where
     ``reward`` is learned) and its buffer, with the transitions it was given."""

@@ -208,5 +208,7 @@ def test_bad_token_model_settings_name_the_value():
         TokenEnsemble(LAYOUT, MAX_LINKS, embedding=0)
     with pytest.raises(ValueError, match=r"hidden must be a non-empty list of positive integers .* got \(\)"):
         TokenEnsemble(LAYOUT, MAX_LINKS, hidden=())
+    with pytest.raises(ValueError, match="target must be change for TokenEnsemble.* got 'next_state'"):
+        TokenEnsemble(LAYOUT, MAX_LINKS, target="next_state")
     with pytest.raises(ValueError, match="max_links must be a positive integer"):
         TokenLayout(0)

@@ -32,6 +32,9 @@ from unipolicy_rl.world_models.dynamics import TERMINATED, NeuralDynamics, check
 from unipolicy_rl.world_models.layout import Layout, StateLayout
 from unipolicy_rl.world_models.networks import EnsembleMLP
 
+# GaussianEnsemble's targets: the state's change over the step (residual), or the next state itself.
+TARGETS = ("change", "next_state")
+
 
 def run_members(network: nn.Module, x: torch.Tensor, member: torch.Tensor) -> torch.Tensor:
     """``network`` member ``member[i]`` applied to row ``x[i]``, rows grouped by member.
@@ -142,23 +145,31 @@ class GaussianEnsemble(ProbabilisticEnsemble):
             ``terminated`` (1 where the step ended the episode; the prediction's mean above 0.5
             ends an imagined branch, terminated). Each output is standardised on its own, so a
             reward's scale never weighs against the state's. Empty (the walker's): none.
+        target: what the state outputs are: ``change`` (the next state minus this one, residual
+            as in PETS and MBPO: one step moves a state little, so the change's scale is the
+            step's, not the state's) or ``next_state`` (the next state itself; mbrl-lib's
+            ``target_is_delta=False``), each standardised on its own either way.
     """
 
     def __init__(self, layout: Layout, action_dim: int, members: int = 7, elites: int = 5,
                  hidden: Sequence[int] = (200, 200, 200), activation: str = "silu",
-                 min_log_var: float = -10.0, max_log_var: float = 0.5, learn: Sequence[str] = ()) -> None:
+                 min_log_var: float = -10.0, max_log_var: float = 0.5, learn: Sequence[str] = (),
+                 target: str = "change") -> None:
+        if target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS} (what the state outputs are), got {target!r}")
         learned = check_learnable(learn)
         input_size = layout.feature_size + action_dim + layout.design_size
         outputs = layout.size + len(learned)
         super().__init__(layout, input_size, outputs, members, elites, min_log_var, max_log_var)
         self.learned_outputs = learned
+        self.residual = target == "change"
         self.network = EnsembleMLP(members, input_size, 2 * outputs, tuple(hidden), activation)
 
     def inputs(self, state, action, design):
         return torch.cat([self.layout.features(state), self.layout.scaled_action(action), design], dim=-1)
 
     def targets(self, state, next_state):
-        return next_state - state
+        return next_state - state if self.residual else next_state
 
     def training_loss(self, x, y):
         return self.gaussian_nll(*self.mean_and_log_var(self.network(x)), y).mean(dim=-1)
@@ -183,7 +194,9 @@ class GaussianEnsemble(ProbabilisticEnsemble):
         mean, log_var = self.mean_and_log_var(run_members(self.network, x.reshape(-1, x.shape[-1]), member))
         out = self.target_norm.inverse(self.sample_change(mean, log_var, deterministic))
         size = self.layout.size
-        next_state = state + out[..., :size].reshape(state.shape)
+        next_state = out[..., :size].reshape(state.shape)
+        if self.residual:
+            next_state = state + next_state
         learned = out[..., size:]
         if TERMINATED in self.learned_outputs:
             column = size + self.learned_outputs.index(TERMINATED)

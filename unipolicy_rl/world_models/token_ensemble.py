@@ -111,10 +111,14 @@ class TokenEnsemble(ProbabilisticEnsemble):
 
     def __init__(self, layout: TokenLayout, action_dim: int, members: int = 7, elites: int = 5,
                  embedding: int = 64, hidden: Sequence[int] = (128,), activation: str = "silu",
-                 min_log_var: float = -10.0, max_log_var: float = 0.5, learn: Sequence[str] = ()) -> None:
-        if learn:  # (moe.yaml's `learn` reaches this model too: robot=grammar's world model lays over it)
+                 min_log_var: float = -10.0, max_log_var: float = 0.5, learn: Sequence[str] = (),
+                 target: str = "change") -> None:
+        if learn:  # (moe.yaml's `learn` and `target` reach this model too: robot=grammar's world model lays over it)
             raise ValueError(f"world_model.model.learn must be empty for TokenEnsemble: a grammar robot's reward and "
                              f"termination are known, got {list(learn)!r}")
+        if target != "change":
+            raise ValueError(f"world_model.model.target must be change for TokenEnsemble: it predicts each link "
+                             f"token's change, got {target!r}")
         if not isinstance(layout, TokenLayout):
             raise ValueError(f"TokenEnsemble predicts link tokens: its layout must be a TokenLayout (robot=grammar), "
                              f"got {type(layout).__name__}")
