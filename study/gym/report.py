@@ -3,6 +3,7 @@ budgets, medians over seeds with bootstrap intervals, from the study's records o
 
     python study/gym/report.py study/gym/records                       # every entry found
     python study/gym/report.py study/gym/records --task Pendulum-v1 --seeds 0-4
+    python study/gym/report.py study/gym/records --seeds 0-4 --figures docs/figures/gym   # and a curve per task
 
 A level is *reached* at the first evaluation whose mean return (the deterministic policy over
 ``env.evaluation_episodes`` episodes) is at or above it, and *held* at the third of three evaluations
@@ -10,6 +11,10 @@ in a row at or above it (credited at the confirming one, as the walker's league 
 run that ends before a level is censored at its last evaluation, not failed: the cell then reads
 "not by N (cut)" when fewer than half of the seeds reached it. Levels are the task's
 (:data:`unipolicy_rl.envs.gym_task.KNOWN_LEVELS`).
+
+With ``--figures DIR``, ``DIR/<task>.png``: each entry's median return over its seeds against real
+env steps (log scale: the model-free entries run 10x longer), the band from the lowest to the highest
+seed, the levels dotted; a step is drawn while at least half of the entry's seeds reached it.
 """
 
 from __future__ import annotations
@@ -121,6 +126,44 @@ def table(records: list[Record], task: str) -> str:
     return "\n".join(lines)
 
 
+def curves(records: list[Record], task: str, path: Path) -> Path:
+    """The figure of ``task``'s entries (module docstring) at ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by_entry: dict[str, list[Record]] = defaultdict(list)
+    for record in records:
+        if task_of(record.entry) == task:
+            by_entry[entry_of(record, task)].append(record)
+    figure, axes = plt.subplots(figsize=(7, 4.2))
+    for entry, runs in sorted(by_entry.items()):
+        steps = sorted({e.steps for run in runs for e in run.evaluations})
+        drawn = []
+        for step in steps:
+            values = [v for run in runs if not math.isnan(v := return_at(run, step))]
+            if 2 * len(values) >= len(runs):
+                drawn.append((step, median(values), min(values), max(values)))
+        if not drawn:
+            continue
+        x, middle, low, high = zip(*drawn, strict=True)
+        line, = axes.plot(x, middle, label=f"{entry} ({len(runs)} seeds)")
+        axes.fill_between(x, low, high, color=line.get_color(), alpha=0.15)
+    for level in KNOWN_LEVELS.get(task.split("-")[0], ()):
+        axes.axhline(level, color="grey", linestyle=":", linewidth=1)
+    axes.set_xscale("log")
+    axes.set_xlabel("real env steps")
+    axes.set_ylabel("evaluation return (deterministic policy)")
+    axes.set_title(f"{task}: median over seeds, lowest to highest seed shaded")
+    axes.legend(fontsize=8)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
 def parse_seeds(text: str) -> set[int]:
     seeds: set[int] = set()
     for part in text.split(","):
@@ -134,6 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("roots", type=Path, nargs="+", help="record folders or run folders")
     parser.add_argument("--task", default=None, help="one gymnasium id (default: every task found)")
     parser.add_argument("--seeds", type=parse_seeds, default=None, help="e.g. 0-4")
+    parser.add_argument("--figures", type=Path, default=None, help="a folder for one curve figure per task")
     args = parser.parse_args(argv)
     records, left_out = load(args.roots)
     records = [record for record in records if record.evaluations and not math.isnan(record.evaluations[0].mean_return)
@@ -143,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"### {task}\n")
         print(table(records, task))
         print()
+        if args.figures is not None:
+            print(f"wrote {curves(records, task, args.figures / f'{task}.png')}\n")
     for reason in left_out:
         print(f"left out: {reason}")
     return 0

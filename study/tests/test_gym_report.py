@@ -48,3 +48,9 @@ def test_a_gym_run_s_record_keeps_its_returns(tmp_path):
     again = records.read(folder, "Pendulum-v1-moe-trpo/seed3")
     assert [e.mean_return for e in again.evaluations] == [-900.5, -150.25]
     assert [e.steps for e in again.evaluations] == [2000, 4000]
+
+
+def test_the_curve_figure_draws_each_entry_where_half_its_seeds_got(tmp_path):
+    runs = [run(0, [-900, -150, -150]), run(1, [-900, -300]), run(0, [-1200] * 5, entry="Pendulum-v1-trpo")]
+    path = report.curves(runs, "Pendulum-v1", tmp_path / "Pendulum-v1.png")
+    assert path.is_file() and path.stat().st_size > 10_000
