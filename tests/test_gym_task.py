@@ -166,9 +166,10 @@ QUICK_MODEL = ["world_model.model.hidden=[16]", "world_model.trainer.max_epochs=
 
 @pytest.mark.parametrize("run", [
     ["source=moe", *QUICK_MODEL],
-    ["source=moe", "algo=sac", "algo.learning_starts=100", "algo.actor_hidden=[16]", "algo.critic_hidden=[16]",
-     *QUICK_MODEL],
-    ["source=pce", "world_model.model.order=1"],
+    # (whole runs of about 15 s each: the slow suite's; ME-TRPO's run above stays in the fast one)
+    pytest.param(["source=moe", "algo=sac", "algo.learning_starts=100", "algo.actor_hidden=[16]",
+                  "algo.critic_hidden=[16]", *QUICK_MODEL], marks=pytest.mark.slow),
+    pytest.param(["source=pce", "world_model.model.order=1"], marks=pytest.mark.slow),
 ])
 def test_train_py_runs_a_gym_task_and_reports_its_returns(tmp_path, run):
     result = subprocess.run([sys.executable, str(ROOT / "train.py"), "env=gym", "env.id=Pendulum-v1", *run,

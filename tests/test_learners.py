@@ -189,6 +189,7 @@ def test_the_real_surrogate_is_trpo_s_own_on_the_batch_it_updated_on():
     assert float(learner.real_surrogate(batch).mean()) == pytest.approx(after_step, rel=1e-4)
 
 
+@pytest.mark.slow  # (a train.py process of about 8 s)
 def test_a_registered_learner_that_lacks_part_of_the_interface_is_refused_by_name_before_training(tmp_path):
     """A user's learner without ``close`` (say, written before it joined the interface) stops the run at
     start-up with the missing names, not after its last epoch."""

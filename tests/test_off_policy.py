@@ -47,13 +47,13 @@ def test_each_learner_takes_steps_that_lower_its_critic_loss(algo):
     torch.manual_seed(0)
     learner = make_learner(config(algo, "algo.updates_per_step=1"), 3, 1)
     assert isinstance(learner, OffPolicyLearner) and isinstance(learner, Learner)
-    data = transitions(64, 3, 1)
+    data = transitions(48, 3, 1)
     first = learner.update(data)
-    for _ in range(5):
+    for _ in range(3):
         last = learner.update(data)
-    assert learner.gradient_steps == 6 * 64  # one step per new transition (UTD 1)
+    assert learner.gradient_steps == 4 * 48  # one step per new transition (UTD 1)
     assert last["train/loss_critic"] < first["train/loss_critic"]
-    assert last["train/buffer_size"] == 6 * 64
+    assert last["train/buffer_size"] == 4 * 48
 
 
 def test_sac_target_critics_follow_the_critics_at_the_polyak_rate_and_crossq_has_none():

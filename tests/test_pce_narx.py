@@ -191,8 +191,11 @@ def test_train_with_a_lagged_pce_and_the_disagreement_cut_runs_end_to_end(tmp_pa
     assert "model/fresh_error" in text and "imagined/cut_share" in text
 
 
-def test_bad_lags_in_the_config_are_refused_at_start_up(tmp_path):
-    from test_train import TINY, run_train
+def test_bad_lags_in_the_config_are_refused_at_start_up():
+    # (validate_config is train.py's first step: test_validation runs train.py on a bad override)
+    from test_train import composed
 
-    result = run_train(*TINY, "source=pce", "world_model.model.lags=3", "epochs=1", f"hydra.run.dir={tmp_path}")
-    assert result.returncode != 0 and "world_model.model.lags must be an integer in [0, 2]" in result.stderr
+    from unipolicy_rl.validation import validate_config
+
+    with pytest.raises(ValueError, match=r"world_model.model.lags must be an integer in \[0, 2\]"):
+        validate_config(composed("source=pce", "world_model.model.lags=3"))

@@ -150,6 +150,7 @@ def test_unreadable_files_are_named_and_the_rest_reported(sweeps, tmp_path):
     assert "grid_reward" in partial.figures
 
 
+@pytest.mark.slow  # (a report process of about 8 s)
 def test_a_folder_that_is_not_a_sweep_is_one_clear_line(tmp_path):
     (tmp_path / "notes.txt").write_text("not a run")
     result = subprocess.run([sys.executable, "-m", "unipolicy_rl.report", str(tmp_path)], cwd=ROOT,

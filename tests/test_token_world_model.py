@@ -83,6 +83,7 @@ def test_the_tokens_are_the_state_and_imply_their_own_masks():
         LAYOUT.from_full(torch.zeros(2, 12, TOKEN_SIZE))
 
 
+@pytest.mark.slow  # (a fit of about 13 s)
 def test_the_model_fits_held_out_transitions_better_than_predicting_no_change():
     model = fitted_model()
     held_out = buffered(2)  # other episodes of the same robots

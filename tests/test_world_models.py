@@ -115,6 +115,7 @@ def test_gaussian_ensemble_fits_a_known_dynamics_and_its_members_differ():
     assert torch.equal(model.predict(*args, deterministic=True), model.predict(*args, deterministic=True))
 
 
+@pytest.mark.slow  # (a fit of about 13 s)
 def test_a_bfloat16_fit_predicts_held_out_data_as_well_as_a_float32_one_and_keeps_float32_weights():
     """precision=bfloat16 runs the training steps under autocast: the same stated accuracy as the
     float32 fit of the test above, a different path there (the steps did run in bfloat16), and the

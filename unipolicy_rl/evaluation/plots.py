@@ -2,7 +2,9 @@
 
 Figures are built with matplotlib's object API (``Figure``, drawn by Agg) rather than
 pyplot, so plots work on headless machines and importing this module never switches the
-backend of a user's notebook or GUI session.
+backend of a user's notebook or GUI session. Matplotlib is imported where a figure is drawn, not
+with this module: every command imports it (train.py, evaluate), and matplotlib's import is about a
+second of each command's start.
 """
 
 from __future__ import annotations
@@ -13,7 +15,6 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from unipolicy_rl.evaluation.grid import DesignResult
 from unipolicy_rl.metric_columns import DISPLACEMENT, EPOCH, EVAL_RETURN, GRID_MEAN, GRID_MIN, REAL_STEPS, REWARD
@@ -47,6 +48,8 @@ def plot_heatmaps(results: Sequence[DesignResult], out_dir: str | Path, title: s
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
+    from matplotlib.figure import Figure
+
     for metric, stem, label in HEATMAPS:
         lengths, densities, values = design_grid(results, metric)
         figure = Figure(figsize=(1.1 * len(lengths) + 3.0, 0.9 * len(densities) + 2.0))
@@ -97,6 +100,8 @@ def plot_training_curve(csv_path_or_rows: str | Path | Iterable[Mapping], out_pa
                      for row in rows)]
     if not panels:
         raise ValueError(f"no rows with both {x_column!r} and {REWARD!r} or {EVAL_RETURN!r}: is this a metrics CSV?")
+    from matplotlib.figure import Figure
+
     figure = Figure(figsize=(7, 3 * len(panels)))
     axes = figure.subplots(len(panels), 1, sharex=True, squeeze=False)
     for axis, (columns, label) in zip(axes[:, 0], panels, strict=True):
