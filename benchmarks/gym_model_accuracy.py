@@ -69,7 +69,7 @@ def random_steps(env_id: str, steps: int, seed: int) -> tuple[object, float]:
     return batch, rate
 
 
-def transitions(cfg: DictConfig, model, batch):
+def transitions(model, batch):
     """``batch``'s transitions as the model's buffer holds them (state, action, design, next state)."""
     buffer = TransitionBuffer.for_model(batch.numel(), model)
     buffer.extend(batch, 1)
@@ -96,9 +96,9 @@ def measure(env_id: str, steps: int, seed: int, quick: bool) -> tuple[dict[str, 
         model = make_dynamics_model(cfg)
         trainer = instantiate(cfg.world_model.trainer)
         started = time.perf_counter()
-        trainer.fit(model, transitions(cfg, model, fitting), torch.Generator().manual_seed(seed))
+        trainer.fit(model, transitions(model, fitting), torch.Generator().manual_seed(seed))
         seconds = time.perf_counter() - started
-        results[name] = (one_step_error(model, transitions(cfg, model, held_out_steps)), seconds)
+        results[name] = (one_step_error(model, transitions(model, held_out_steps)), seconds)
     return results, rate
 
 

@@ -51,6 +51,15 @@ def entry_of(record: Record, task: str) -> str:
     return folder[len(task) + 1:] if folder.startswith(f"{task}-") else folder
 
 
+def runs_by_entry(records: list[Record], task: str) -> dict[str, list[Record]]:
+    """``task``'s runs, grouped by their entry (:func:`entry_of`)."""
+    by_entry: dict[str, list[Record]] = defaultdict(list)
+    for record in records:
+        if task_of(record.entry) == task:
+            by_entry[entry_of(record, task)].append(record)
+    return by_entry
+
+
 def steps_to(record: Record, level: float, in_a_row: int) -> tuple[float, bool]:
     """(real env steps, reached): where the run's returns were first ``in_a_row`` evaluations in a
     row at or above ``level`` (credited at the last of them); else (its last evaluation's steps, False)."""
@@ -108,10 +117,7 @@ def table(records: list[Record], task: str) -> str:
     """The markdown table of ``task``'s entries."""
     prefix = task.split("-")[0]
     levels, budgets = KNOWN_LEVELS.get(prefix, ()), BUDGETS.get(prefix, ())
-    by_entry: dict[str, list[Record]] = defaultdict(list)
-    for record in records:
-        if task_of(record.entry) == task:
-            by_entry[entry_of(record, task)].append(record)
+    by_entry = runs_by_entry(records, task)
     head = ["entry", "seeds"]
     head += [f"reaches {level:g}" for level in levels] + [f"holds {level:g}" for level in levels]
     head += [f"return at {budget:,}" for budget in budgets]
@@ -133,10 +139,7 @@ def curves(records: list[Record], task: str, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    by_entry: dict[str, list[Record]] = defaultdict(list)
-    for record in records:
-        if task_of(record.entry) == task:
-            by_entry[entry_of(record, task)].append(record)
+    by_entry = runs_by_entry(records, task)
     figure, axes = plt.subplots(figsize=(7, 4.2))
     for entry, runs in sorted(by_entry.items()):
         steps = sorted({e.steps for run in runs for e in run.evaluations})
