@@ -239,3 +239,10 @@ def test_a_fit_precision_other_than_float32_bfloat16_or_auto_is_refused_at_start
     with pytest.raises(ValueError, match=r"world_model.trainer.*precision must be one of "
                                          r"\['auto', 'bfloat16', 'float32'\], got 'float16'"):
         validate_config(composed(["source=moe", "world_model.trainer.precision=float16"]))
+
+
+@pytest.mark.parametrize("setting", ["disagreement_cut", "disagreement_penalty"])
+def test_a_disagreement_setting_on_a_model_whose_members_cannot_disagree_is_refused_before_training(setting):
+    validate_config(composed(["source=moe", f"imagination.{setting}=1.0"]))  # the ensemble's members can
+    with pytest.raises(ValueError, match=rf"imagination\.{setting} .*CellEnsemble cannot.*one per cell"):
+        validate_config(composed(["source=moe", "world_model=moe_thesis", f"imagination.{setting}=1.0"]))

@@ -448,8 +448,9 @@ def validate_config(cfg: DictConfig) -> None:
         # On the meta device: the constructor's checks run, no weights are allocated.
         model = _built("world_model.model", lambda: make_dynamics_model(cfg, device="meta"))
         check_stopping_rule(imagination.stopping, model)
-        if imagination.disagreement_cut is not None:
-            check_members_disagree(model)
+        for name in ("disagreement_cut", "disagreement_penalty"):
+            if getattr(imagination, name) is not None:
+                check_members_disagree(model, f"imagination.{name}")
         if cfg.algo.name not in ON_POLICY_ALGOS:
             check_model_based_imagination(imagination)
         _check_adaptive_kl(cfg, imagination.adaptive_kl)

@@ -565,7 +565,7 @@ def test_every_league_plan_entry_runs_under_its_own_name():
         HydraConfig.instance().cfg = None  # (a process-wide singleton; no other test should see this one)
 
 
-@pytest.mark.parametrize("plan", ["league_plan.yaml", "morphology_plan.yaml"])
+@pytest.mark.parametrize("plan", ["league_plan.yaml", "morphology_plan.yaml", "holding/plan.yaml", "gym/plan.yaml"])
 def test_every_entry_of_the_queue_plans_composes_and_passes_validation(plan):
     """A typo in a plan's overrides would fail a run hours into a queue; here it fails at once."""
     import yaml

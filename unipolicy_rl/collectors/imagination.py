@@ -38,8 +38,12 @@ from unipolicy_rl.seeding import IMAGINATION, epoch_seed
 from unipolicy_rl.world_models.disagreement import (
     DISAGREEMENT,
     DISAGREEMENT_CUT,
+    DISAGREEMENT_PENALTY,
     DisagreementCut,
+    DisagreementPenalty,
+    change_scale,
     check_members_disagree,
+    check_penalty_weight,
     check_threshold,
 )
 from unipolicy_rl.world_models.dynamics import Dynamics
@@ -156,6 +160,9 @@ class ImaginationSettings:
             state passes this (in units of a typical real step's change; see
             :mod:`~unipolicy_rl.world_models.disagreement`), truncated; None: branches run their
             horizon (ending early only on a model fault).
+        disagreement_penalty: take this times the members' disagreement about each imagined
+            step's next state (the cut's units) off that step's reward, as MOPO lowers the reward
+            where the model is unsure; None: the reward as the env or the model gives it.
         buffer_capacity: real transitions kept (FIFO).
         fit_every: real epochs from one model fit to the next (1: after every epoch). In between,
             the policy still trains on imagined branches from the newest real states, under the
@@ -180,6 +187,7 @@ class ImaginationSettings:
     deterministic: bool = False
     train_on_real: bool = False
     disagreement_cut: float | None = None
+    disagreement_penalty: float | None = None
     buffer_capacity: int = 200_000
     fit_every: int = 1
     background_fit: bool = False
@@ -197,6 +205,8 @@ class ImaginationSettings:
             raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
         if self.disagreement_cut is not None:
             check_threshold(self.disagreement_cut)
+        if self.disagreement_penalty is not None:
+            check_penalty_weight(self.disagreement_penalty)
         if not isinstance(self.background_fit, bool):
             raise ValueError(f"background_fit must be true or false, got {self.background_fit!r}")
         if self.stopping.kind == "real" and not self.train_on_real:
@@ -244,8 +254,9 @@ class Imagination:
                  seed: int, episode_length: int, termination: Termination = None,
                  blowup_limit: float = EXPLOSION_LIMIT) -> None:
         check_stopping_rule(settings.stopping, model)
-        if settings.disagreement_cut is not None:
-            check_members_disagree(model)
+        for name in ("disagreement_cut", "disagreement_penalty"):
+            if getattr(settings, name) is not None:
+                check_members_disagree(model, f"imagination.{name}")
         stopping = settings.stopping
         self.model = model
         self.reference_env = reference_env
@@ -279,18 +290,27 @@ class Imagination:
         torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION))
         horizon = self.horizon(epoch)
         starts = self._start_sampler(transitions, epoch)
-        # The cut's units: each output's spread of real one-step changes in the buffer, as of now.
-        cut = (None if self.settings.disagreement_cut is None else
-               DisagreementCut.from_transitions(self.settings.disagreement_cut, transitions,
-                                                self.model.layout.robot_size))
+        cut, penalty = self._disagreement_uses(transitions)
         env = ImaginedEnv(
             make_world_model(self.model, self.reward, self.settings.member_per_step, self.settings.deterministic, cut,
-                             self.termination, self.blowup_limit),
+                             self.termination, self.blowup_limit, penalty),
             self.reference_env, starts, max(1, self.settings.steps_per_batch // horizon),
         )
         real_check = (None if self.stopping.kind != "real" else
                       RealCheck(policy, real_surrogate, self.stopping.tolerance))
         return ImaginedEpoch(self, env, policy, horizon, starts(self.stopping.check_starts), real_check)
+
+    def _disagreement_uses(self, transitions: TensorDictBase
+                           ) -> tuple[DisagreementCut | None, DisagreementPenalty | None]:
+        """The cut and the penalty this epoch (None where off), in one unit: each output's spread of
+        real one-step changes in the buffer, as of now."""
+        settings = self.settings
+        if settings.disagreement_cut is None and settings.disagreement_penalty is None:
+            return None, None
+        scale = change_scale(transitions, self.model.layout.robot_size)
+        return (None if settings.disagreement_cut is None else DisagreementCut(settings.disagreement_cut, scale),
+                None if settings.disagreement_penalty is None else
+                DisagreementPenalty(settings.disagreement_penalty, scale))
 
     def _start_sampler(self, data: TensorDictBase, epoch: int):
         pool = data if self.settings.rollout == "branch" else data[data.get(EPISODE_START)]
@@ -449,8 +469,10 @@ class ImaginedEpoch:
 def imagined_metrics(rollout: TensorDictBase) -> dict[str, float]:
     """What one imagined batch held: reward, branch return, model faults, horizon, steps, and the
     mean branch length (a fault or the disagreement cut ends a branch before the horizon; a row
-    of the batch then holds more than one). With the cut: the share of branches it ended, and
-    the mean disagreement over the steps (those where every member's prediction was finite)."""
+    of the batch then holds more than one). With the cut or the penalty: the mean disagreement
+    over the steps (those where every member's prediction was finite); with the cut, the share of
+    branches it ended; with the penalty, the mean reward it took off a step (the reward figures
+    are after it)."""
     reward = rollout.get(("next", "reward"))
     # Every branch ends with done (its last step is truncated by the time metrics are taken).
     branches = max(1, int(rollout.get(("next", "done")).sum()))
@@ -462,11 +484,15 @@ def imagined_metrics(rollout: TensorDictBase) -> dict[str, float]:
         "imagined/steps": float(reward.numel()),
         "imagined/branch_length": reward.numel() / branches,
     }
-    if ("next", DISAGREEMENT_CUT) in rollout.keys(include_nested=True):
+    keys = rollout.keys(include_nested=True)
+    if ("next", DISAGREEMENT) in keys:
         disagreement = rollout.get(("next", DISAGREEMENT))
         finite = disagreement[torch.isfinite(disagreement)]
-        metrics["imagined/cut_share"] = int(rollout.get(("next", DISAGREEMENT_CUT)).sum()) / branches
         metrics["imagined/disagreement"] = finite.mean().item() if finite.numel() else float("nan")
+    if ("next", DISAGREEMENT_CUT) in keys:
+        metrics["imagined/cut_share"] = int(rollout.get(("next", DISAGREEMENT_CUT)).sum()) / branches
+    if ("next", DISAGREEMENT_PENALTY) in keys:
+        metrics["imagined/disagreement_penalty"] = rollout.get(("next", DISAGREEMENT_PENALTY)).mean().item()
     return metrics
 
 

@@ -16,7 +16,7 @@ use (PEP 562), and nothing here imports PyBullet.
 
 import importlib
 
-from unipolicy_rl.world_models.disagreement import DisagreementCut, MemberDisagreement
+from unipolicy_rl.world_models.disagreement import DisagreementCut, DisagreementPenalty, MemberDisagreement
 from unipolicy_rl.world_models.dynamics import LEARNABLE, REWARD, TERMINATED, Dynamics, NeuralDynamics
 from unipolicy_rl.world_models.ensemble import CellEnsemble, GaussianEnsemble
 from unipolicy_rl.world_models.episodes import episode_starts
@@ -46,6 +46,7 @@ __all__ = [
     "CellEnsemble",
     "ClosedFormTrainer",
     "DisagreementCut",
+    "DisagreementPenalty",
     "Dynamics",
     "FitReport",
     "FlatLayout",

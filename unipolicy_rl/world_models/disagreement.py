@@ -1,4 +1,5 @@
-"""Where a world model's members disagree about the next state: the measure, and the cut it makes.
+"""Where a world model's members disagree about the next state: the measure, the cut it makes,
+and the reward penalty it sets.
 
 MACURA (Frauenknecht et al., ICML 2024) ends a model rollout where the model stops trusting
 itself: at the step whose prediction the ensemble's members disagree on past a threshold. Here
@@ -6,6 +7,13 @@ that is a setting for every world model whose members are alternative models of 
 (``imagination.disagreement_cut``): an imagined branch ends at the step where its members'
 disagreement about the next state passes the threshold, truncated, never terminated, so the
 value estimator bootstraps from the critic there as at a branch's last step.
+
+MOPO (Yu et al., NeurIPS 2020) and MOReL (Kidambi et al., NeurIPS 2020) keep a policy from
+exploiting a model's errors by lowering the imagined reward where the model is unsure: MOPO
+subtracts ``lambda`` times an uncertainty of the step. Here that is
+``imagination.disagreement_penalty``: each imagined step's reward less ``weight`` times the same
+measure the cut reads (:class:`DisagreementPenalty`, :class:`PenalizedReward`). A branch runs on;
+the policy learns that where the members part, the return it was promised is less sure.
 
 The measure, :class:`MemberDisagreement`: every voting member predicts the row's next state with
 its mean (``deterministic``); the disagreement is the members' standard deviation (sample, over
@@ -39,6 +47,7 @@ from unipolicy_rl.world_models.networks import MIN_STD
 # Keys of an imagined step with the cut (under "next"; the reset writes zeros).
 DISAGREEMENT = "disagreement"  # the members' disagreement about this step's next state
 DISAGREEMENT_CUT = "disagreement_cut"  # True where it passed the threshold and ended the branch
+DISAGREEMENT_PENALTY = "disagreement_penalty"  # what the penalty took off this step's reward
 
 
 def check_threshold(threshold: float, name: str = "imagination.disagreement_cut") -> None:
@@ -49,15 +58,27 @@ def check_threshold(threshold: float, name: str = "imagination.disagreement_cut"
                          f"change) or null for no cut, got {threshold!r}")
 
 
-def check_members_disagree(model: Dynamics) -> None:
-    """Refuses the cut for a model whose members are not alternatives of one robot (one per design
-    cell) or that has a single member: their disagreement would not measure the model's error."""
+def check_penalty_weight(weight: float, name: str = "imagination.disagreement_penalty") -> None:
+    """Refuses a penalty weight that is not a positive finite number, by name."""
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not (math.isfinite(weight) and weight > 0):
+        raise ValueError(f"{name} must be a positive number (reward taken off per unit of the members' "
+                         f"disagreement) or null for no penalty, got {weight!r}")
+
+
+# What each setting that reads the members' disagreement does with it (for the refusal below).
+USES = {"imagination.disagreement_cut": "cuts branches", "imagination.disagreement_penalty": "lowers the reward"}
+
+
+def check_members_disagree(model: Dynamics, setting: str = "imagination.disagreement_cut") -> None:
+    """Refuses ``setting`` (the cut or the penalty) for a model whose members are not alternatives
+    of one robot (one per design cell) or that has a single member: their disagreement would not
+    measure the model's error."""
     voters = model.voting_members
     if voters is None or len(voters) < 2:
         why = ("its members model different designs (one per cell), not alternatives of one robot" if voters is None
                else "it has a single member, so there is no disagreement to measure")
-        raise ValueError(f"imagination.disagreement_cut cuts branches where a model's members disagree, but "
-                         f"{type(model).__name__} cannot: {why}; set imagination.disagreement_cut=null with it")
+        raise ValueError(f"{setting} {USES[setting]} where a model's members disagree, but "
+                         f"{type(model).__name__} cannot: {why}; set {setting}=null with it")
 
 
 def change_scale(transitions: TensorDictBase, robot_size: int) -> torch.Tensor:
@@ -84,6 +105,43 @@ class DisagreementCut:
     @classmethod
     def from_transitions(cls, threshold: float, transitions: TensorDictBase, robot_size: int) -> DisagreementCut:
         return cls(threshold, change_scale(transitions, robot_size))
+
+
+@dataclass(frozen=True)
+class DisagreementPenalty:
+    """Each imagined step's reward less ``weight`` times the members' disagreement about its next
+    state (units of ``scale``, as :class:`DisagreementCut`'s)."""
+
+    weight: float
+    scale: torch.Tensor
+
+    def __post_init__(self) -> None:
+        check_penalty_weight(self.weight)
+        if not (self.scale > 0).any():
+            raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
+
+    @classmethod
+    def from_transitions(cls, weight: float, transitions: TensorDictBase, robot_size: int) -> DisagreementPenalty:
+        return cls(weight, change_scale(transitions, robot_size))
+
+
+class PenalizedReward(nn.Module):
+    """``(reward, disagreement) -> (reward - weight * disagreement, the penalty)``.
+
+    A row where a voting member's prediction is not finite disagrees without measure; it is
+    charged the largest finite disagreement of its batch (the worst the batch measured), so the
+    penalty stays finite and no row gains from a member that blew up."""
+
+    def __init__(self, weight: float) -> None:
+        super().__init__()
+        check_penalty_weight(weight)
+        self.weight = float(weight)
+
+    def forward(self, reward, disagreement):
+        finite = torch.isfinite(disagreement)
+        worst = disagreement[finite].max() if finite.any() else disagreement.new_zeros(())
+        penalty = self.weight * torch.where(finite, disagreement, worst).to(reward.dtype)
+        return reward - penalty, penalty
 
 
 def member_predictions(model: Dynamics, state: torch.Tensor, action: torch.Tensor,
@@ -157,11 +215,15 @@ class CutDoneHead(nn.Module):
 __all__ = [
     "DISAGREEMENT",
     "DISAGREEMENT_CUT",
+    "DISAGREEMENT_PENALTY",
     "CutDoneHead",
     "DisagreementCut",
+    "DisagreementPenalty",
     "MemberDisagreement",
+    "PenalizedReward",
     "change_scale",
     "check_members_disagree",
+    "check_penalty_weight",
     "check_threshold",
     "member_predictions",
 ]

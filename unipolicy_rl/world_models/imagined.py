@@ -8,7 +8,9 @@ known reward or the model's learned one, and the done head ends a trajectory tha
 (by a known termination function or the model's learned one; none by default) and truncates
 one whose prediction blew up (and, with a
 :class:`~unipolicy_rl.world_models.disagreement.DisagreementCut`, one whose members disagree
-about the next state past its threshold). :class:`ImaginedEnv` is TorchRL's
+about the next state past its threshold; with a
+:class:`~unipolicy_rl.world_models.disagreement.DisagreementPenalty`, the reward is lowered where
+they disagree). :class:`ImaginedEnv` is TorchRL's
 :class:`~torchrl.envs.model_based.ModelBasedEnvBase` around it, presenting the keys and specs of
 the real env: the policy's observation, the design where the layout has one, ``physics_fault``
 (the model's own blow-ups; copied from the env where it has the key), reward,
@@ -44,9 +46,12 @@ from unipolicy_rl.envs.reward import RewardWeights, walking_reward
 from unipolicy_rl.world_models.disagreement import (
     DISAGREEMENT,
     DISAGREEMENT_CUT,
+    DISAGREEMENT_PENALTY,
     CutDoneHead,
     DisagreementCut,
+    DisagreementPenalty,
     MemberDisagreement,
+    PenalizedReward,
     member_predictions,
 )
 from unipolicy_rl.world_models.dynamics import REWARD, TERMINATED, Dynamics, learned_outputs
@@ -246,7 +251,8 @@ def termination_module(termination: Termination, model: Dynamics,
 
 def make_world_model(model: Dynamics, reward: Reward, member_per_step: bool = False,
                      deterministic: bool = False, cut: DisagreementCut | None = None,
-                     termination: Termination = None, blowup_limit: float = EXPLOSION_LIMIT) -> WorldModel:
+                     termination: Termination = None, blowup_limit: float = EXPLOSION_LIMIT,
+                     penalty: DisagreementPenalty | None = None) -> WorldModel:
     """Composes ``model`` into TorchRL's ``WorldModel`` (latent = ``state``).
 
     ``reward``: the walker's :class:`~unipolicy_rl.envs.RewardWeights`, a known reward (a
@@ -255,12 +261,14 @@ def make_world_model(model: Dynamics, reward: Reward, member_per_step: bool = Fa
     the model faults, truncated), a known termination function, or ``"learned"``.
     ``blowup_limit``: a predicted state with a magnitude at or past it is a fault.
 
-    With ``cut`` the done head also measures the members' disagreement about each step's next
-    state (``("next", "disagreement")``) and ends the branch where it passes ``cut.threshold``
-    (``("next", "disagreement_cut")``); without it the model is exactly what it was before the
-    cut existed (same keys, same random draws). With ``cut`` and ``deterministic`` the step and
-    the disagreement share one all-member prediction (:class:`PredictAndMeasureDisagreement`):
-    the cut then costs little more than the step itself."""
+    With ``cut`` or ``penalty`` the world model also measures the members' disagreement about
+    each step's next state (``("next", "disagreement")``). ``cut`` ends the branch where it passes
+    ``cut.threshold`` (``("next", "disagreement_cut")``); ``penalty`` takes ``penalty.weight``
+    times it off the step's reward (``("next", "disagreement_penalty")``: what it took). Without
+    either the model is exactly what it was before they existed (same keys, same random draws).
+    With ``deterministic`` the step and the disagreement share one all-member prediction
+    (:class:`PredictAndMeasureDisagreement`): the measure then costs little more than the step
+    itself."""
     nxt = "next"
     context = context_keys(model)
     learned = [(nxt, LEARNED_KEYS[name]) for name in learned_outputs(model)]
@@ -272,29 +280,39 @@ def make_world_model(model: Dynamics, reward: Reward, member_per_step: bool = Fa
                                 in_keys=step_in, out_keys=[*step_out, *learned])
     decoder = TensorDictModule(ObservationDecoder(model), in_keys=[(nxt, "state"), *((nxt, key) for key in context)],
                                out_keys=[(nxt, model.layout.observation_key)])
+    rewards = reward_head(reward, model, decoder)
+    scale = disagreement_scale(cut, penalty)
+    if scale is not None and deterministic and not learned:
+        dynamics = TensorDictModule(PredictAndMeasureDisagreement(model, scale, member_per_step, blowup_limit),
+                                    in_keys=step_in, out_keys=[*step_out, (nxt, DISAGREEMENT)])
+    elif scale is not None:  # measured first in the reward's stage (it follows the dynamics; the done head reads it)
+        rewards = TensorDictSequential(
+            TensorDictModule(MemberDisagreement(model, scale), in_keys=["state", "action", *context],
+                             out_keys=[(nxt, DISAGREEMENT)]), rewards)
+    if penalty is not None:
+        rewards = TensorDictSequential(rewards, TensorDictModule(
+            PenalizedReward(penalty.weight), in_keys=[(nxt, "reward"), (nxt, DISAGREEMENT)],
+            out_keys=[(nxt, "reward"), (nxt, DISAGREEMENT_PENALTY)]))
     terminates = termination_module(termination, model, decoder)
     done_in = [(nxt, "physics_fault")]
     flags = [(nxt, "done"), (nxt, "terminated"), (nxt, "truncated")]
     terminated_in = [] if terminates is None else [(nxt, "terminated")]
     if cut is None:
         done = TensorDictModule(DoneHead(), in_keys=[*done_in, *terminated_in], out_keys=flags)
-    elif deterministic and not learned:
-        dynamics = TensorDictModule(
-            PredictAndMeasureDisagreement(model, cut.scale, member_per_step, blowup_limit),
-            in_keys=step_in, out_keys=[*step_out, (nxt, DISAGREEMENT)],
-        )
+    else:
         done = TensorDictModule(CutDoneHead(cut.threshold), in_keys=[*done_in, (nxt, DISAGREEMENT), *terminated_in],
                                 out_keys=[*flags, (nxt, DISAGREEMENT_CUT)])
-    else:
-        done = TensorDictSequential(
-            TensorDictModule(MemberDisagreement(model, cut.scale), in_keys=["state", "action", *context],
-                             out_keys=[(nxt, DISAGREEMENT)]),
-            TensorDictModule(CutDoneHead(cut.threshold), in_keys=[*done_in, (nxt, DISAGREEMENT), *terminated_in],
-                             out_keys=[*flags, (nxt, DISAGREEMENT_CUT)]),
-        )
     if terminates is not None:
         done = TensorDictSequential(terminates, done)
-    return WorldModel(encoder, dynamics, reward_head(reward, model, decoder), done_head=done, decoder=decoder)
+    return WorldModel(encoder, dynamics, rewards, done_head=done, decoder=decoder)
+
+
+def disagreement_scale(cut: DisagreementCut | None, penalty: DisagreementPenalty | None) -> torch.Tensor | None:
+    """The units of the one disagreement the cut and the penalty read (None: neither is on)."""
+    if cut is not None and penalty is not None and not torch.equal(cut.scale, penalty.scale):
+        raise ValueError("the disagreement cut and penalty read one measure, so they need the same scale (both "
+                         "from the same transitions: change_scale)")
+    return cut.scale if cut is not None else None if penalty is None else penalty.scale
 
 
 class ImaginedEnv(ModelBasedEnvBase):
@@ -354,11 +372,13 @@ class ImaginedEnv(ModelBasedEnvBase):
             shape=shape,
         )
         self.build_keys = layout.build_keys
-        # A world model with the disagreement cut reports it at every step (zero at a reset).
-        self.cuts = ("next", DISAGREEMENT_CUT) in world_model.out_keys
-        if self.cuts:
-            self.observation_spec[DISAGREEMENT] = Unbounded((*shape, 1), dtype=torch.float32)
-            self.observation_spec[DISAGREEMENT_CUT] = fault.expand(*shape, *fault.shape).clone()
+        # A world model with the disagreement cut or penalty reports them at every step (zero at a reset).
+        measured = {DISAGREEMENT: Unbounded((*shape, 1), dtype=torch.float32),
+                    DISAGREEMENT_CUT: fault.expand(*shape, *fault.shape).clone(),
+                    DISAGREEMENT_PENALTY: Unbounded((*shape, 1), dtype=torch.float32)}
+        self.measured = [key for key in measured if ("next", key) in world_model.out_keys]
+        for key in self.measured:
+            self.observation_spec[key] = measured[key]
         for name in ("action_spec", "reward_spec", "done_spec"):
             spec = getattr(reference_env, name)[one]
             setattr(self, name, spec.expand(*shape, *spec.shape).clone())
@@ -411,9 +431,8 @@ class ImaginedEnv(ModelBasedEnvBase):
             },
             batch_size=self.batch_size,
         )
-        if self.cuts:
-            out.set(DISAGREEMENT, torch.zeros(n, 1))
-            out.set(DISAGREEMENT_CUT, torch.zeros(n, 1, dtype=torch.bool))
+        for key in self.measured:
+            out.set(key, self.observation_spec[key].zero())
         zero_done = self.full_done_spec.zero()
         out.update(zero_done)
         return out
