@@ -1,7 +1,7 @@
 """Imagined steps per second of the default world model against real env steps per second.
 
     python benchmarks/imagination_throughput.py [--repeats 5] [--batches 500x10,200x25,2000x25,5000x25]
-        [--world-model moe] [--disagreement-cut 1.0] [--deterministic]
+        [--world-model moe] [--disagreement-cut 1.0] [--disagreement-penalty 1.0] [--deterministic]
 
 The model is ``world_model=moe`` as configured (``conf/world_model/moe.yaml``: a
 :class:`GaussianEnsemble` of 7 members, 3 x 200 SiLU, predicting the full state), given a
@@ -32,7 +32,9 @@ members disagree past ``T`` (``imagination.disagreement_cut``; its scale from th
 transitions), timed in the same repeats; its rows give the cut's steps/s, their paired ratio
 to the uncut rate (every member predicts every step, and cut rows restart), and the share of
 branches it cut. The last line is then ``cut_cost_ratio: <cut / uncut steps per second, 1
-thread, first batch>``. ``--deterministic`` imagines with each member's mean, as
+thread, first batch>``. ``--disagreement-penalty W`` adds the same with the imagined reward
+lowered by ``W`` times the disagreement (``imagination.disagreement_penalty``: every member
+predicts every step, no branch is cut), and ``penalty_cost_ratio`` likewise. ``--deterministic`` imagines with each member's mean, as
 ``imagination.deterministic`` does (``world_model=pce``'s default), for every variant.
 """
 
@@ -50,20 +52,22 @@ from unipolicy_rl.collectors import imagined_metrics, truncate_last_step
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights, RobotSettings
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.policy import NORMALIZED_OBSERVATION, make_collecting_policy, make_observation_norm
-from unipolicy_rl.world_models import DisagreementCut, ImaginedEnv, StateLayout, make_world_model
+from unipolicy_rl.world_models import DisagreementCut, DisagreementPenalty, ImaginedEnv, StateLayout, make_world_model
+from unipolicy_rl.world_models.disagreement import change_scale
 
 REAL_STEPS = 100
 
 
 def timed_rollout(env, policy, steps: int, cut_shares: list | None = None) -> tuple[float, float]:
     """(steps/s of wall time, steps per second of this process's CPU time) of one rollout; the
-    share of branches the disagreement cut ended is appended to ``cut_shares`` when given."""
+    share of branches the disagreement cut ended (0 where nothing cuts) is appended to
+    ``cut_shares`` when given."""
     with torch.no_grad():
         wall, cpu = time.perf_counter(), time.process_time()
         rollout = env.rollout(steps, policy, break_when_any_done=False)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     if cut_shares is not None:
-        cut_shares.append(imagined_metrics(truncate_last_step(rollout))["imagined/cut_share"])
+        cut_shares.append(imagined_metrics(truncate_last_step(rollout)).get("imagined/cut_share", 0.0))
     return rollout.numel() / wall, rollout.numel() / cpu
 
 
@@ -94,6 +98,8 @@ def main() -> None:
     parser.add_argument("--world-model", default="moe", help="the world model's yaml (conf/world_model/)")
     parser.add_argument("--disagreement-cut", type=float, default=None,
                         help="also time each batch with branches cut where members disagree past this")
+    parser.add_argument("--disagreement-penalty", type=float, default=None,
+                        help="also time each batch with the reward lowered by this times the members' disagreement")
     parser.add_argument("--deterministic", action="store_true",
                         help="imagine with each member's mean prediction (imagination.deterministic)")
     args = parser.parse_args()
@@ -107,22 +113,28 @@ def main() -> None:
     real.set_seed(0)
     world_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic)
     imagined = {batch: ImaginedEnv(world_model, real, starts, batch[0]) for batch in batches}
-    cutting = {}
-    if args.disagreement_cut is not None:
-        cut = DisagreementCut.from_transitions(args.disagreement_cut, data, model.layout.robot_size)
-        cut_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic, cut=cut)
-        cutting = {batch: ImaginedEnv(cut_model, real, starts, batch[0]) for batch in batches}
+    # The variants that read the members' disagreement: name -> (its headline, its env per batch).
+    scale = change_scale(data, model.layout.robot_size)
+    variants = {}
+    for name, value, headline_name, setting in (
+            ("disagreement_cut", args.disagreement_cut, "cut_cost_ratio", lambda v: {"cut": DisagreementCut(v, scale)}),
+            ("disagreement_penalty", args.disagreement_penalty, "penalty_cost_ratio",
+             lambda v: {"penalty": DisagreementPenalty(v, scale)})):
+        if value is not None:
+            variant_model = make_world_model(model, RewardWeights(), deterministic=args.deterministic, **setting(value))
+            variants[f"{name}={value:g}"] = (headline_name, {batch: ImaginedEnv(variant_model, real, starts, batch[0])
+                                                             for batch in batches})
     for threads in thread_counts:  # untimed warm-up: robot builds, first allocations
         torch.set_num_threads(threads)
         timed_rollout(real, policy, REAL_STEPS)
-        for (_, horizon), env in [*imagined.items(), *cutting.items()]:
+        for (_, horizon), env in [*imagined.items(), *(item for _, envs in variants.values() for item in envs.items())]:
             timed_rollout(env, policy, horizon)
 
     raw_rates = []
     real_rates = {threads: [] for threads in thread_counts}
     rates = {(threads, batch): [] for threads in thread_counts for batch in batches}
-    cut_rates = {(threads, batch): [] for threads in thread_counts for batch in cutting}
-    cut_shares = {batch: [] for batch in cutting}
+    variant_rates = {(name, threads, batch): [] for name in variants for threads in thread_counts for batch in batches}
+    cut_shares = {(name, batch): [] for name in variants for batch in batches}
     for _ in range(args.repeats):  # interleaved, so drift in the machine's load hits every variant
         torch.set_num_threads(1)
         raw_rates.append(raw_pybullet(2000)[0])
@@ -131,9 +143,9 @@ def main() -> None:
             real_rates[threads].append(timed_rollout(real, policy, REAL_STEPS))
             for batch, env in imagined.items():
                 rates[threads, batch].append(timed_rollout(env, policy, batch[1]))
-                if batch in cutting:
-                    cut_rates[threads, batch].append(timed_rollout(cutting[batch], policy, batch[1],
-                                                                   cut_shares[batch]))
+                for name, (_, envs) in variants.items():
+                    variant_rates[name, threads, batch].append(timed_rollout(envs[batch], policy, batch[1],
+                                                                             cut_shares[name, batch]))
     real.close()
 
     print(f"model: {type(model).__name__} (world_model={args.world_model}), {model.members} members, "
@@ -160,19 +172,19 @@ def main() -> None:
             spread = f"{statistics.median(ratios):.1f} ({min(ratios):.1f}-{max(ratios):.1f})"
             print(f"{name:44s} {threads:7d} {statistics.median(wall):9.0f} {spread:>20s} "
                   f"{statistics.median(cpu):12.0f} {statistics.median(cpu_ratios):13.1f}")
-            if (threads, (trajectories, horizon)) in cut_rates:
-                cut_wall = [w for w, _ in cut_rates[threads, (trajectories, horizon)]]
-                paired = [c / u for c, u in zip(cut_wall, wall, strict=True)]
-                headline["cut", threads, (trajectories, horizon)] = statistics.median(paired)
-                share = statistics.median(cut_shares[trajectories, horizon])
-                name = f"  with disagreement_cut={args.disagreement_cut:g} ({share:.0%} cut)"
-                print(f"{name:44s} {threads:7d} {statistics.median(cut_wall):9.0f} "
-                      f"{f'x uncut {statistics.median(paired):.2f} ({min(paired):.2f}-{max(paired):.2f})':>20s}")
+            for variant in variants:
+                variant_wall = [w for w, _ in variant_rates[variant, threads, (trajectories, horizon)]]
+                paired = [c / u for c, u in zip(variant_wall, wall, strict=True)]
+                headline[variant, threads, (trajectories, horizon)] = statistics.median(paired)
+                share = statistics.median(cut_shares[variant, (trajectories, horizon)])
+                name = f"  with {variant} ({share:.0%} cut)"
+                print(f"{name:44s} {threads:7d} {statistics.median(variant_wall):9.0f} "
+                      f"{f'x plain {statistics.median(paired):.2f} ({min(paired):.2f}-{max(paired):.2f})':>20s}")
     print("steps/CPU-s: steps per second of this process's CPU time (both threads' with 2), which load from "
           "other processes moves less than wall time")
     print(f"imagination_ratio: {headline[thread_counts[0], batches[0]]:.1f}")
-    if cutting:
-        print(f"cut_cost_ratio: {headline['cut', thread_counts[0], batches[0]]:.2f}")
+    for variant, (headline_name, _) in variants.items():
+        print(f"{headline_name}: {headline[variant, thread_counts[0], batches[0]]:.2f}")
 
 
 if __name__ == "__main__":
