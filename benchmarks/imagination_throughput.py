@@ -34,8 +34,9 @@ to the uncut rate (every member predicts every step, and cut rows restart), and 
 branches it cut. The last line is then ``cut_cost_ratio: <cut / uncut steps per second, 1
 thread, first batch>``. ``--disagreement-penalty W`` adds the same with the imagined reward
 lowered by ``W`` times the disagreement (``imagination.disagreement_penalty``: every member
-predicts every step, no branch is cut), and ``penalty_cost_ratio`` likewise. ``--deterministic`` imagines with each member's mean, as
-``imagination.deterministic`` does (``world_model=pce``'s default), for every variant.
+predicts every step, no branch is cut), and ``penalty_cost_ratio`` likewise.
+``--deterministic`` imagines with each member's mean, as ``imagination.deterministic`` does
+(``world_model=pce``'s default), for every variant.
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ from torch import nn
 from unipolicy_rl.world_models.dynamics import Dynamics
 from unipolicy_rl.world_models.networks import MIN_STD
 
-# Keys of an imagined step with the cut (under "next"; the reset writes zeros).
+# Keys of an imagined step with the cut or the penalty (under "next"; the reset writes zeros).
 DISAGREEMENT = "disagreement"  # the members' disagreement about this step's next state
 DISAGREEMENT_CUT = "disagreement_cut"  # True where it passed the threshold and ended the branch
 DISAGREEMENT_PENALTY = "disagreement_penalty"  # what the penalty took off this step's reward
@@ -102,10 +102,6 @@ class DisagreementCut:
         if not (self.scale > 0).any():
             raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
 
-    @classmethod
-    def from_transitions(cls, threshold: float, transitions: TensorDictBase, robot_size: int) -> DisagreementCut:
-        return cls(threshold, change_scale(transitions, robot_size))
-
 
 @dataclass(frozen=True)
 class DisagreementPenalty:
@@ -119,10 +115,6 @@ class DisagreementPenalty:
         check_penalty_weight(self.weight)
         if not (self.scale > 0).any():
             raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
-
-    @classmethod
-    def from_transitions(cls, weight: float, transitions: TensorDictBase, robot_size: int) -> DisagreementPenalty:
-        return cls(weight, change_scale(transitions, robot_size))
 
 
 class PenalizedReward(nn.Module):
