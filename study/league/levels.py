@@ -156,7 +156,8 @@ def fit_settings(record: Record) -> str:
         return "-"
     if record.precision is None:
         return "not recorded"  # a run from before the setting, or a model fitted in closed form
-    threads = "torch's default threads" if record.threads is None else f"{record.threads} threads"
+    # null: the trainer keeps the run's own thread count (train.py runs on one thread).
+    threads = "the run's one thread" if record.threads is None else f"{record.threads} threads"
     return f"{record.precision}, {threads}"
 
 
