@@ -221,16 +221,24 @@ def test_the_pce_predicts_every_member_at_once_as_it_predicts_each():
     assert (every.std(0) > 0).any()  # the bootstrap members differ
 
 
+# The two settings that read the members' disagreement (the cut here, the penalty in
+# test_disagreement_penalty.py): what each does, as its refusals name it.
+DISAGREEMENT_SETTINGS = {"disagreement_cut": "cuts branches", "disagreement_penalty": "lowers the reward"}
+
+
+@pytest.mark.parametrize("setting", sorted(DISAGREEMENT_SETTINGS))
 @pytest.mark.parametrize("bad", [0, -0.5, float("nan"), float("inf"), True, "1"])
-def test_a_threshold_that_is_not_a_positive_number_is_refused_by_name(bad):
-    with pytest.raises(ValueError, match=r"imagination\.disagreement_cut must be a positive number.*got"):
-        ImaginationSettings(disagreement_cut=bad)
+def test_a_setting_that_is_not_a_positive_number_is_refused_by_name(setting, bad):
+    with pytest.raises(ValueError, match=rf"imagination\.{setting} must be a positive number.*got"):
+        ImaginationSettings(**{setting: bad})
 
 
-def test_the_cut_is_refused_for_models_whose_members_cannot_disagree(reference):
+@pytest.mark.parametrize("setting", sorted(DISAGREEMENT_SETTINGS))
+def test_the_setting_is_refused_for_models_whose_members_cannot_disagree(reference, setting):
     cells = CellEnsemble(LAYOUT, 4, (0.15, 0.2), (0.4, 0.6), divisions=2, hidden=(8,))
-    settings = ImaginationSettings(disagreement_cut=1.0, stopping=StoppingRule(kind="fixed"))
-    with pytest.raises(ValueError, match="CellEnsemble cannot.*one per cell.*disagreement_cut=null"):
+    settings = ImaginationSettings(**{setting: 1.0}, stopping=StoppingRule(kind="fixed"))
+    with pytest.raises(ValueError, match=rf"{setting} {DISAGREEMENT_SETTINGS[setting]}.*CellEnsemble cannot.*"
+                                         rf"one per cell.*{setting}=null"):
         Imagination(cells, reference, RewardWeights(), settings, 0, 10)
     with pytest.raises(ValueError, match="DivergingMembers cannot.*single member"):
         Imagination(DivergingMembers(1, members=1), reference, RewardWeights(), settings, 0, 10)

@@ -1,4 +1,7 @@
-"""The imagined reward lowered where the world model's members disagree (MOPO; ``imagination.disagreement_penalty``)."""
+"""The imagined reward lowered where the world model's members disagree (MOPO; ``imagination.disagreement_penalty``).
+
+Its refusals (a weight that is not a positive number, a model whose members cannot disagree) are
+tested beside the cut's, parametrized over both settings, in test_disagreement_cut.py."""
 
 import math
 
@@ -12,7 +15,6 @@ from unipolicy_rl.collectors import HorizonSchedule, Imagination, ImaginationSet
 from unipolicy_rl.envs import BatchedWalkerEnv, RewardWeights
 from unipolicy_rl.networks import make_actor
 from unipolicy_rl.world_models import (
-    CellEnsemble,
     DisagreementCut,
     DisagreementPenalty,
     ImaginedEnv,
@@ -97,17 +99,3 @@ def test_imagination_with_the_penalty_logs_what_it_took_in_the_buffers_units(ref
     assert math.isclose(metrics["imagined/disagreement"], GAP / scale / 2, rel_tol=1e-5)
     assert math.isclose(metrics["imagined/disagreement_penalty"], WEIGHT * GAP / scale / 2, rel_tol=1e-5)
     assert "imagined/cut_share" not in metrics and metrics["imagined/branch_length"] == 6.0
-
-
-@pytest.mark.parametrize("bad", [0, -0.5, float("nan"), float("inf"), True, "1"])
-def test_a_weight_that_is_not_a_positive_number_is_refused_by_name(bad):
-    with pytest.raises(ValueError, match=r"imagination\.disagreement_penalty must be a positive number.*got"):
-        ImaginationSettings(disagreement_penalty=bad)
-
-
-def test_the_penalty_is_refused_for_models_whose_members_cannot_disagree(reference):
-    cells = CellEnsemble(LAYOUT, 4, (0.15, 0.2), (0.4, 0.6), divisions=2, hidden=(8,))
-    settings = ImaginationSettings(disagreement_penalty=1.0, stopping=StoppingRule(kind="fixed"))
-    with pytest.raises(ValueError, match=r"disagreement_penalty lowers the reward.*CellEnsemble cannot.*"
-                                         r"disagreement_penalty=null"):
-        Imagination(cells, reference, RewardWeights(), settings, 0, 10)

@@ -81,6 +81,12 @@ def check_members_disagree(model: Dynamics, setting: str = "imagination.disagree
                          f"{type(model).__name__} cannot: {why}; set {setting}=null with it")
 
 
+def check_scale(scale: torch.Tensor) -> None:
+    """Refuses a scale (from :func:`change_scale`) with no output that changes: nothing to measure."""
+    if not (scale > 0).any():
+        raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
+
+
 def change_scale(transitions: TensorDictBase, robot_size: int) -> torch.Tensor:
     """``[robot_size]``: the standard deviation of each output's real one-step change in
     ``transitions`` (keys ``state``, ``next_state``); 0 for an output that does not change."""
@@ -99,8 +105,7 @@ class DisagreementCut:
 
     def __post_init__(self) -> None:
         check_threshold(self.threshold)
-        if not (self.scale > 0).any():
-            raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
+        check_scale(self.scale)
 
 
 @dataclass(frozen=True)
@@ -113,8 +118,7 @@ class DisagreementPenalty:
 
     def __post_init__(self) -> None:
         check_penalty_weight(self.weight)
-        if not (self.scale > 0).any():
-            raise ValueError("the disagreement's scale has no output that changes in the data: nothing to measure")
+        check_scale(self.scale)
 
 
 class PenalizedReward(nn.Module):
