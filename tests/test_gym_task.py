@@ -13,8 +13,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from torchrl.envs import GymEnv
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
 
+from unipolicy_rl.checkpoint import load_policy
 from unipolicy_rl.collectors import TransitionBuffer
 from unipolicy_rl.env_factories import gym_task
 from unipolicy_rl.envs.gym_task import (
@@ -184,3 +185,14 @@ def test_train_py_runs_a_gym_task_and_reports_its_returns(tmp_path, run):
     assert all(-2000 < float(row["eval/mean_return"]) < 0 for row in rows)
     with open(tmp_path / "evaluation" / "returns.csv") as file:
         assert len(list(csv.DictReader(file))) == 2
+    # The saved policy rebuilds from its checkpoint and drives the task it trained on.
+    loaded = load_policy(tmp_path / "checkpoint.pt")
+    env = loaded.env_class(1, **loaded.env_kwargs)
+    start = env.reset()
+    assert loaded.act(start["observation"].numpy()).shape == (1,)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        acted = loaded.policy(start)
+        step = env.step(acted)
+    env.close()
+    assert torch.allclose(acted["action"], torch.as_tensor(loaded.act(start["observation"].numpy())))
+    assert torch.isfinite(step["next", "reward"]).all()

@@ -265,7 +265,8 @@ class LoadedPolicy:
     ``policy`` reads the raw ``observation`` (normalisation is inside it), or for a token policy
     the raw ``tokens`` with their masks and parents, and writes ``action``;
     ``env_class(num_robots, **env_kwargs)`` rebuilds the environment it was trained on
-    (``BatchedWalkerEnv``, or ``MorphologyWalkerEnv`` for ``robot=grammar``).
+    (``BatchedWalkerEnv``, ``MorphologyWalkerEnv`` for ``robot=grammar``, or for ``env=gym`` the
+    factory of the gymnasium task).
     """
 
     policy: TensorDictModuleBase
@@ -273,6 +274,7 @@ class LoadedPolicy:
     config: dict
     epoch: int
     env_class: type = BatchedWalkerEnv
+    reads_tokens: bool = False  # a token policy (robot=grammar): its input is not one flat observation
 
     @property
     def specialist(self) -> int | None:
@@ -280,9 +282,12 @@ class LoadedPolicy:
         return (self.config.get("robot") or {}).get("specialist")
 
     def act(self, observation: np.ndarray, deterministic: bool = True) -> np.ndarray:
-        """Action for one WalkerEnv observation (or a batch of them); a flat policy's only."""
-        if self.env_class is not BatchedWalkerEnv:
-            raise ValueError(f"act() takes a flat WalkerEnv observation; this policy reads the link tokens of a "
+        """Action for one flat observation (or a batch of them): the walker's or a gymnasium task's,
+        in the policy's ``[-1, 1]`` box (the env it trained on, ``env_class``, clips it there and, on
+        a gymnasium task, maps it onto the task's own range). A token policy's input is not one
+        array: call ``.policy`` on a tensordict of its env's keys."""
+        if self.reads_tokens:
+            raise ValueError(f"act() takes a flat observation; this policy reads the link tokens of a "
                              f"{self.env_class.__name__}: call .policy on a tensordict of the env's keys")
         observation = torch.as_tensor(np.asarray(observation), dtype=torch.float32)
         td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
@@ -299,7 +304,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     policy = state["policy"]
     dims, loc, scale = (state["observation_dim"], state["action_dim"]), policy["observation_loc"], \
         policy["observation_scale"]
-    if policy_architecture(cfg) in TOKEN_POLICIES:
+    reads_tokens = policy_architecture(cfg) in TOKEN_POLICIES
+    if reads_tokens:
         actor = make_token_actor(cfg, *dims)
         normalizer = make_token_norm(dims[0], loc, scale)
     else:
@@ -308,4 +314,4 @@ def load_policy(path: str | Path, device: str = "cpu") -> LoadedPolicy:
     actor.load_state_dict(policy["actor"])
     policy = make_collecting_policy(normalizer, actor).to(device).eval()
     env_class, kwargs = env_builder(cfg)
-    return LoadedPolicy(policy, kwargs, state["config"], state["epoch"], env_class)
+    return LoadedPolicy(policy, kwargs, state["config"], state["epoch"], env_class, reads_tokens)
