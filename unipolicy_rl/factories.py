@@ -23,6 +23,7 @@ from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from unipolicy_rl.collectors import (
     Imagination,
+    MeanActionRobots,
     RealEpochCollector,
     ShutdownCompleteMultiSyncCollector,
     TransitionBuffer,
@@ -154,8 +155,11 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
 
 def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool) -> RealEpochCollector:
     """Real epochs of whole episodes, reseeded per epoch; ``full_state`` adds the robots' full
-    state to every step (what a world model fits on)."""
+    state to every step (what a world model fits on). ``collector.mean_action_robots`` of each
+    epoch's robots act with the policy's mean action (:class:`MeanActionRobots`)."""
     frames_per_batch = frames_per_epoch(cfg)
+    if robots := OmegaConf.select(cfg, "collector.mean_action_robots", default=0):
+        policy = MeanActionRobots(policy, robots)
     return RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=full_state), cfg.seed, cfg.epochs,
                               frames_per_batch)
 

@@ -364,6 +364,34 @@ def _policy_average_fits(cfg: DictConfig) -> str | None:
     return None
 
 
+def _mean_action_robots_fit(cfg: DictConfig) -> str | None:
+    """``collector.mean_action_robots`` (unipolicy_rl.collectors.mean_action): fewer than the epoch's
+    robots, the first rows of one collector's batch, and never under an on-policy step on the real
+    batch, whose log-probabilities they do not sample."""
+    robots = OmegaConf.select(cfg, "collector.mean_action_robots", default=0)
+    if isinstance(robots, bool) or not isinstance(robots, int) or robots < 0:
+        return f"collector.mean_action_robots must be a non-negative integer (robots per real epoch), got {robots!r}"
+    if robots == 0:
+        return None
+    what = f"collector.mean_action_robots={robots}"
+    if env_kind(cfg) == GYM:
+        return f"{what} picks robots of the walker's epoch; env=gym runs one env (env.id={cfg.env.id})"
+    if robots >= cfg.episodes_per_epoch:
+        return (f"{what} leaves no robot of episodes_per_epoch={cfg.episodes_per_epoch} to sample: the policy's "
+                "exploration comes from those")
+    if cfg.workers != 1 or cfg.collector.backend != "process":
+        return (f"{what} acts on the first rows of one collector's batch: set workers=1 "
+                f"(got workers={cfg.workers}, collector.backend={cfg.collector.backend})")
+    on_policy = cfg.algo.name in ON_POLICY_ALGOS
+    if on_policy and cfg.source.kind == "real":
+        return (f"{what} with algo={cfg.algo.name} on the real env: its update reads the real batch as samples of "
+                "the policy, which the mean-action robots are not (a model source, or an off-policy learner, can)")
+    if on_policy and OmegaConf.select(cfg, "imagination.train_on_real", default=False):
+        return (f"{what} with imagination.train_on_real=true: that step reads the real batch as samples of the "
+                "policy, which the mean-action robots are not")
+    return None
+
+
 # keys -> rule, for the plain values checked against each other; run after the keys' own rules,
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
@@ -381,6 +409,8 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("robot", "source.kind", "world_model"): _world_model_reads_the_robot,
     ("algo", "source"): _critic_fit_runs_here,
     ("algo",): _policy_average_fits,
+    ("collector", "env", "episodes_per_epoch", "workers", "algo.name", "source.kind", "imagination"):
+        _mean_action_robots_fit,
 }
 
 

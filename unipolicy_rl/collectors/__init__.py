@@ -10,6 +10,7 @@ from unipolicy_rl.collectors.imagination import (
     StoppingRule,
     imagined_metrics,
 )
+from unipolicy_rl.collectors.mean_action import MEAN_ACTION, MeanActionRobots
 from unipolicy_rl.collectors.real import (
     DATA_SOURCE,
     IMAGINED,
@@ -25,11 +26,13 @@ __all__ = [
     "COLLECTED_IN",
     "DATA_SOURCE",
     "IMAGINED",
+    "MEAN_ACTION",
     "REAL",
     "HorizonSchedule",
     "Imagination",
     "ImaginationSettings",
     "ImaginedEpoch",
+    "MeanActionRobots",
     "RealCheck",
     "RealEpochCollector",
     "ShutdownCompleteMultiSyncCollector",
