@@ -10,7 +10,8 @@ its mean action stands.
 
 The mean-action robots' steps are not samples of the policy their ``action_log_prob`` belongs to,
 so a learner that takes an on-policy step on the real batch must not see them; the config refuses
-the combinations that would (``validation``).
+the combinations that would (``validation``). The epoch's logged returns (``train/episode_reward``)
+count every robot, the mean-action ones included.
 """
 
 from __future__ import annotations
