@@ -23,7 +23,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from unipolicy_rl.checkpoint import load_checkpoint, load_policy
 from unipolicy_rl.env_factories import env_kind
 from unipolicy_rl.envs.gym_task import GYM
-from unipolicy_rl.policy import make_actor_critic, make_observation_norm
+from unipolicy_rl.policy import make_actor_critic
 
 
 def values_and_returns(path: str, seed: int) -> tuple[list[float], list[float], list[float], bool]:
@@ -36,10 +36,8 @@ def values_and_returns(path: str, seed: int) -> tuple[list[float], list[float], 
                          "state-value critic")
     _, critic = make_actor_critic(cfg, state["observation_dim"], state["action_dim"])
     critic.load_state_dict(state["learner"]["critic"])
-    policy = state["policy"]
-    normalizer = make_observation_norm(state["observation_dim"], policy["observation_loc"],
-                                       policy["observation_scale"])
     loaded = load_policy(path)
+    normalizer = loaded.policy.module[0]  # the policy's own observation normaliser, which the critic reads too
     env = loaded.env_class(1, **loaded.env_kwargs)
     env.set_seed(seed)
     step = env.reset()
