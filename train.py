@@ -78,7 +78,9 @@ def main(cfg: DictConfig) -> dict:
         learner.start_from_policy(policy_to_start_from(cfg, cfg.init_policy, observation_dim, action_dim))
         print(f"started from the policy in {cfg.init_policy}")
     model_based = cfg.source.kind == "model"
-    real = make_real_collector(cfg, learner.policy, full_state=model_based)
+    # (algo.update_every: an off-policy learner steps between chunks of the epoch as they come)
+    between_chunks = learner.update_chunk if OmegaConf.select(cfg, "algo.update_every") else None
+    real = make_real_collector(cfg, learner.policy, full_state=model_based, between_chunks=between_chunks)
     # From here on, a failure anywhere still shuts the collector's worker processes and the
     # learner's critic process down (else the interpreter waits for them on exit).
     with real, closing(learner), RunLock(run_dir), naming_the_checkpoint_on_stall(run_dir / "checkpoint.pt"), \
@@ -140,8 +142,9 @@ def main(cfg: DictConfig) -> dict:
                     metrics.update(fit.result().as_metrics())  # the model now holds this epoch's fit
             metrics.update(end_of_epoch(learner))  # algo.policy_average: the acting policy's averaging step
             real.update_policy_weights_()
-            metrics[columns.COLLECT_TIME] = collected - tick
-            metrics[columns.UPDATE_TIME] = time.perf_counter() - collected
+            # (the learner's steps between chunks, taken while the epoch was collected, count as updates)
+            metrics[columns.COLLECT_TIME] = collected - tick - real.between_chunks_seconds
+            metrics[columns.UPDATE_TIME] = time.perf_counter() - collected + real.between_chunks_seconds
             metrics[columns.CPU_TIME] = process_tree_cpu_seconds() - tick_cpu
             # ---- Evaluation (deterministic policy, real env, design grid) and checkpoint
             metrics.update(evaluation(epoch, real.real_env_steps, learner.policy))

@@ -156,6 +156,12 @@ def frames_per_epoch(cfg: DictConfig) -> int:
     return cfg.episodes_per_epoch * cfg.robot.episode_length
 
 
+def steps_per_env_epoch(cfg: DictConfig) -> int:
+    """Steps each env takes in one epoch: a walker robot's ``robot.episode_length``, or the gym
+    task's one env's ``env.frames_per_epoch``."""
+    return int(cfg.env.frames_per_epoch) if env_kind(cfg) == GYM else int(cfg.robot.episode_length)
+
+
 def episode_length(cfg: DictConfig) -> int:
     """The longest episode: the walker's ``robot.episode_length``, or a gym task's time limit."""
     return gym_task(cfg).episode_length if env_kind(cfg) == GYM else cfg.robot.episode_length

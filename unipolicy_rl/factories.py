@@ -37,6 +37,7 @@ from unipolicy_rl.env_factories import (
     frames_per_epoch,
     gym_task,
     morphology_env_kwargs,
+    steps_per_env_epoch,
 )
 from unipolicy_rl.envs import BatchedWalkerEnv, MorphologyWalkerEnv
 from unipolicy_rl.envs.gym_task import GYM, world_model_reward, world_model_termination
@@ -102,7 +103,7 @@ def robots_per_worker(cfg: DictConfig) -> int:
 
 
 def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
-                   full_state: bool = False) -> Collector | MultiSyncCollector:
+                   full_state: bool = False, chunks_per_epoch: int = 1) -> Collector | MultiSyncCollector:
     """One epoch (``episodes_per_epoch`` robots x ``episode_length`` steps) per iteration.
 
     ``workers`` processes each step their share of the robots *and* run the policy on them
@@ -126,13 +127,27 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     For ``env=gym`` the epoch is ``env.frames_per_epoch`` steps of one gymnasium env, in this
     process, its episodes ending at the task's own time limit or termination; the batch is
     ``[1, steps]``, shaped as a walker's ``[robots, steps]``.
+
+    ``chunks_per_epoch`` > 1 (``algo.update_every``; one process only) makes each batch a chunk of
+    the epoch's steps of every env, without the epoch's post-processing (:func:`epoch_postproc`),
+    which :class:`RealEpochCollector` applies to the chunks joined.
     """
     frames_per_batch = frames_per_epoch(cfg)
     env_class, kwargs = env_builder(cfg)
+    postproc = epoch_postproc(cfg)
+    if chunks_per_epoch > 1:
+        if cfg.workers != 1 or cfg.collector.backend != "process":
+            raise ValueError(f"an epoch collected in {chunks_per_epoch} chunks (algo.update_every) needs the learner "
+                             f"in the collecting process: workers=1 and collector.backend=process, got "
+                             f"workers={cfg.workers}, collector.backend={cfg.collector.backend}")
+        if frames_per_batch % chunks_per_epoch:
+            raise ValueError(f"{frames_per_batch} real env steps per epoch do not split into {chunks_per_epoch} chunks")
+        frames_per_batch, postproc = frames_per_batch // chunks_per_epoch, None
+    total_frames = frames_per_batch * chunks_per_epoch * max(epochs, 1)
     if env_kind(cfg) == GYM:
         return Collector(functools.partial(training_env, 1, env_class=env_class, **kwargs), policy,
-                         frames_per_batch=frames_per_batch, total_frames=frames_per_batch * max(epochs, 1),
-                         postproc=one_env_epoch, auto_register_policy_transforms=False)
+                         frames_per_batch=frames_per_batch, total_frames=total_frames,
+                         postproc=postproc, auto_register_policy_transforms=False)
     kwargs = {**kwargs, "episode_length": None}
     if env_class is BatchedWalkerEnv:
         kwargs["full_state"] = full_state
@@ -140,12 +155,12 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
         kwargs["env_class"] = env_class
     # The policy needs no env transform (its normaliser is inside it): say so, which also
     # silences TorchRL 0.14's warning that it will add them by itself from 0.15 on.
-    common = {"frames_per_batch": frames_per_batch, "total_frames": frames_per_batch * max(epochs, 1),
-              "postproc": truncate_last_step, "auto_register_policy_transforms": False}
+    common = {"frames_per_batch": frames_per_batch, "total_frames": total_frames,
+              "postproc": postproc, "auto_register_policy_transforms": False}
     if cfg.collector.backend == "ray":  # one Collector per Ray actor (TorchRL's RayCollector)
         make_worker_env = functools.partial(training_env, robots_per_worker(cfg), ignore_signals=True, **kwargs)
         return make_epoch_ray_collector([make_worker_env] * cfg.workers, policy, frames_per_batch=frames_per_batch,
-                                        total_frames=common["total_frames"], postproc=truncate_last_step,
+                                        total_frames=total_frames, postproc=postproc,
                                         address=cfg.collector.ray_address)
     if cfg.workers == 1:
         return Collector(functools.partial(training_env, robots_per_worker(cfg), **kwargs), policy, **common)
@@ -153,15 +168,37 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     return ShutdownCompleteMultiSyncCollector([make_worker_env] * cfg.workers, policy, cat_results="stack", **common)
 
 
-def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool) -> RealEpochCollector:
+def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_state: bool,
+                        between_chunks: Callable[[TensorDictBase], object] | None = None) -> RealEpochCollector:
     """Real epochs of whole episodes, reseeded per epoch; ``full_state`` adds the robots' full
     state to every step (what a world model fits on). ``collector.mean_action_robots`` of each
-    epoch's robots act with the policy's mean action (:class:`MeanActionRobots`)."""
+    epoch's robots act with the policy's mean action (:class:`MeanActionRobots`). With
+    ``algo.update_every`` the epoch comes in chunks of that many steps of every env, each handed to
+    ``between_chunks`` (an off-policy learner's ``update_chunk``) before the next is collected."""
     frames_per_batch = frames_per_epoch(cfg)
     if robots := OmegaConf.select(cfg, "collector.mean_action_robots", default=0):
         policy = MeanActionRobots(policy, robots)
-    return RealEpochCollector(make_collector(cfg, policy, cfg.epochs, full_state=full_state), cfg.seed, cfg.epochs,
-                              frames_per_batch)
+    chunks = chunks_per_epoch(cfg)
+    if chunks > 1 and between_chunks is None:
+        raise ValueError(f"algo.update_every={cfg.algo.update_every} collects the epoch in chunks for a learner to "
+                         f"step between them: pass its update_chunk as between_chunks")
+    collector = make_collector(cfg, policy, cfg.epochs, full_state=full_state, chunks_per_epoch=chunks)
+    return RealEpochCollector(collector, cfg.seed, cfg.epochs, frames_per_batch, chunks_per_epoch=chunks,
+                              between_chunks=between_chunks if chunks > 1 else None,
+                              postproc=epoch_postproc(cfg) if chunks > 1 else None)
+
+
+def chunks_per_epoch(cfg: DictConfig) -> int:
+    """The chunks ``algo.update_every`` (an off-policy learner's env steps between its rounds of
+    gradient steps) splits each env's epoch into; 1 without it."""
+    every = OmegaConf.select(cfg, "algo.update_every", default=None)
+    return 1 if every is None else steps_per_env_epoch(cfg) // every
+
+
+def epoch_postproc(cfg: DictConfig) -> Callable[[TensorDictBase], TensorDictBase]:
+    """What ends an epoch's batch: its last step truncated (a gym task's one env also gains the
+    robots' dimension)."""
+    return one_env_epoch if env_kind(cfg) == GYM else truncate_last_step
 
 
 @dataclass

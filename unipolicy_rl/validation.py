@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from unipolicy_rl.collectors.distributed import BACKENDS as COLLECTOR_BACKENDS
 from unipolicy_rl.collectors.distributed import require_ray
-from unipolicy_rl.env_factories import GRAMMAR_SIDES, ROBOT_KINDS, env_kind, gym_task, robot_kind
+from unipolicy_rl.env_factories import GRAMMAR_SIDES, ROBOT_KINDS, env_kind, gym_task, robot_kind, steps_per_env_epoch
 from unipolicy_rl.envs.gym_task import ENV_KINDS, GYM
 from unipolicy_rl.envs.morphology import HINGE_TYPES, SAMPLINGS
 from unipolicy_rl.envs.simulation import OBSERVATIONS
@@ -392,6 +392,28 @@ def _mean_action_robots_fit(cfg: DictConfig) -> str | None:
     return None
 
 
+def _update_every_fits(cfg: DictConfig) -> str | None:
+    """``algo.update_every`` (an off-policy learner's steps between rounds of gradient steps while the
+    epoch is collected): a divisor of each env's steps per epoch, with the learner in the process
+    that collects."""
+    every = OmegaConf.select(cfg, "algo.update_every", default=None)
+    if every is None:
+        return None
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        return (f"algo.update_every must be an integer >= 1 (env steps between rounds of gradient steps) or null, "
+                f"got {every!r}")
+    steps = steps_per_env_epoch(cfg)
+    if steps % every:
+        where = "env.frames_per_epoch" if env_kind(cfg) == GYM else "robot.episode_length"
+        return (f"algo.update_every={every} must divide each env's steps per epoch ({where}={steps}): the epoch is "
+                f"collected in chunks of that many steps")
+    if cfg.workers != 1 or cfg.collector.backend != "process":
+        return (f"algo.update_every={every} steps the learner between chunks of the epoch as they are collected, "
+                f"which needs the policy in this process: set workers=1 (got workers={cfg.workers}, "
+                f"collector.backend={cfg.collector.backend})")
+    return None
+
+
 # keys -> rule, for the plain values checked against each other; run after the keys' own rules,
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
@@ -411,6 +433,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("algo",): _policy_average_fits,
     ("collector", "env", "episodes_per_epoch", "workers", "algo.name", "source.kind", "imagination"):
         _mean_action_robots_fit,
+    ("algo", "env", "robot", "workers", "collector"): _update_every_fits,
 }
 
 

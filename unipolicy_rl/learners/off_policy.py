@@ -12,6 +12,13 @@ buffer, the rest from the model's. The gradient steps a real batch earns (UTD x 
 are then taken when the epoch's imagined batch arrives, so they see the branches of the model
 fitted on that real data, as MBPO's steps follow its rollouts.
 
+Or the learner learns while the epoch is collected (``update_every``): the collector hands it each
+chunk of that many env steps as it comes (:meth:`OffPolicyLearner.update_chunk`), and it takes the
+chunk's gradient steps at once, so the policy that collects moves every few steps, as in SAC's and
+MBPO's own code (one env step, then its updates). Taken once per epoch instead, 1,000 real steps
+then 10,000 updates at ten per step, the steps see no data of the policy they move to for a whole
+epoch. On a world model, a chunk's steps mix its real data with the latest fit's branches.
+
 Transitions are stored with their raw observations and normalised when a minibatch is drawn,
 with the current statistics: an old transition is seen the way the current policy would see it.
 How a refresh treats the networks is ``normalizer_refresh``: ``jump`` only moves the normaliser,
@@ -87,6 +94,8 @@ class OffPolicySettings:
         normalizer_refresh: ``jump`` (only the normaliser moves between epochs) or ``preserve``
             (the actor's and critics' first layers are re-expressed so that their outputs stay
             the same; see the module docstring).
+        update_every: env steps (of each env) between rounds of gradient steps while the epoch is
+            collected (SAC's and MBPO's code: 1); None: one round per epoch, after it.
     """
 
     loss: str = "sac"
@@ -110,6 +119,7 @@ class OffPolicySettings:
     real_data_share: float = 0.05
     model_buffer_capacity: int = 100_000
     normalizer_refresh: str = "jump"
+    update_every: int | None = None
 
     def __post_init__(self) -> None:
         if self.normalizer_refresh not in REFRESH_MODES:
@@ -156,6 +166,10 @@ class OffPolicySettings:
                                                      and 0 < self.alpha_init < math.inf):
             raise ValueError(f"algo.alpha_init (the entropy temperature's start, learned as its log) must be a "
                              f"positive number, got {self.alpha_init!r}")
+        if self.update_every is not None and (isinstance(self.update_every, bool)
+                                              or not isinstance(self.update_every, int) or self.update_every < 1):
+            raise ValueError(f"algo.update_every must be an integer >= 1 (env steps between rounds of gradient "
+                             f"steps) or null (one round per epoch), got {self.update_every!r}")
         if not (self.target_entropy == "auto" or isinstance(self.target_entropy, (int, float))):
             raise ValueError(f"algo.target_entropy must be 'auto' or a number, got {self.target_entropy!r}")
 
@@ -260,30 +274,70 @@ class OffPolicyLearner:
                            ("next", "terminated"))
         self.gradient_steps = 0
         self.owed_steps = 0.0  # earned gradient steps not taken yet (a fraction, or MBPO's until model data come)
+        # update_every: what this epoch's chunks brought and measured, until update() reports it
+        self._chunk_transitions, self._chunk_steps, self._chunk_totals = 0, 0, {}
 
     # -- the Learner interface --------------------------------------------------------------
     def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """A real epoch (its transitions stored, their gradient steps taken, or with ``update_every``
+        only reported: they were taken as its chunks came) or a model's branches (MBPO: stored, and
+        the real data's owed steps taken on them)."""
         new = batch.reshape(-1).select(*self.batch_keys).clone()
         if is_imagined(batch):
             if self.model_buffer is None:
                 raise ValueError("this off-policy learner was built for real data only (model_based=False) and "
                                  "was given an imagined batch: build it with model_based=True (MBPO)")
             self.model_buffer.extend(new)
+        elif self.settings.update_every is not None:
+            return self._report_chunks(new.numel())
         else:
             self.buffer.extend(new)
             self.owed_steps += self.settings.updates_per_step * new.numel()
             if self.model_based:  # the steps wait for the model's branches of this epoch
                 return self._progress()
+        totals, steps = self._take_owed_steps()
+        return {**_means(totals, steps), **self._progress()}
+
+    def update_chunk(self, chunk: TensorDictBase) -> None:
+        """``update_every``: a chunk of the epoch being collected, stored, and its gradient steps
+        taken now (on a world model, on minibatches that mix it with the latest fit's branches),
+        before the policy collects the next chunk. :meth:`update` on the epoch reports them."""
+        if self.settings.update_every is None:
+            raise ValueError("update_chunk needs algo.update_every: without it the learner takes its gradient "
+                             "steps once per epoch, in update()")
+        if is_imagined(chunk):
+            raise ValueError("update_chunk takes real transitions as they are collected, not a model's branches")
+        new = chunk.reshape(-1).select(*self.batch_keys).clone()
+        self.buffer.extend(new)
+        self.owed_steps += self.settings.updates_per_step * new.numel()
+        totals, steps = self._take_owed_steps()
+        self._chunk_transitions += new.numel()
+        self._chunk_steps += steps
+        for name, value in totals.items():
+            self._chunk_totals[name] = self._chunk_totals.get(name, 0.0) + value
+
+    def _report_chunks(self, transitions: int) -> dict[str, float]:
+        if transitions != self._chunk_transitions:
+            raise ValueError(f"algo.update_every={self.settings.update_every}: the learner takes its steps on the "
+                             f"epoch's chunks as they come (update_chunk, which the real collector calls), and has "
+                             f"seen {self._chunk_transitions} of this real batch's {transitions} transitions")
+        metrics = _means(self._chunk_totals, self._chunk_steps)
+        self._chunk_transitions, self._chunk_steps, self._chunk_totals = 0, 0, {}
+        return {**metrics, **self._progress()}
+
+    def _take_owed_steps(self) -> tuple[dict[str, float], int]:
+        """The gradient steps earned so far (a fraction waits), once the buffer holds
+        ``learning_starts`` transitions (steps earned before that are dropped): the sums of what
+        they measured, and how many."""
         steps = int(self.owed_steps)
         self.owed_steps -= steps
         if len(self.buffer) < max(self.settings.learning_starts, 1):
-            return self._progress()
+            return {}, 0
         totals: dict[str, float] = {}
         for _ in range(steps):
             for name, value in self._gradient_step().items():
                 totals[name] = totals.get(name, 0.0) + value
-        metrics = {f"train/{name}": value / max(steps, 1) for name, value in totals.items()}
-        return {**metrics, **self._progress()}
+        return totals, steps
 
     def _progress(self) -> dict[str, float]:
         progress = {"train/gradient_steps": float(self.gradient_steps), "train/buffer_size": float(len(self.buffer))}
@@ -391,6 +445,11 @@ class OffPolicyLearner:
 
     def close(self) -> None:
         """Nothing runs beside an off-policy learner."""
+
+
+def _means(totals: dict[str, float], steps: int) -> dict[str, float]:
+    """Per-step means of what ``steps`` gradient steps measured, as ``train/`` metrics."""
+    return {f"train/{name}": value / max(steps, 1) for name, value in totals.items()}
 
 
 def first_layer(network: nn.Module, kinds: type | tuple[type, ...]) -> tuple[tuple[str, ...], nn.Module]:
