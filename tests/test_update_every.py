@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from test_train import run_train
+from test_off_policy import MBPO_TINY
+from test_train import run_train, straight_and_resumed
 
 from unipolicy_rl.factories import make_learner, make_real_collector
 from unipolicy_rl.validation import validate_config
@@ -115,3 +116,13 @@ def test_train_py_learns_between_chunks_and_counts_those_steps_as_updates(tmp_pa
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     assert [float(row["train/gradient_steps"]) for row in rows] == [150, 350]  # the first chunk's 50 earn none
     assert all(float(row["time/collect"]) >= 0 and float(row["time/update"]) > 0 for row in rows)
+
+
+@pytest.mark.slow
+def test_mbpo_learning_between_chunks_of_the_walkers_epoch_resumes_exactly(tmp_path):
+    """On the walker (two robots, epochs of 10 steps in chunks of 5) and a world model: every step
+    the real data earn is taken between chunks, and a resumed run continues as the straight one."""
+    straight, resumed, _ = straight_and_resumed(tmp_path, [*MBPO_TINY, "algo.update_every=5"], first=2, total=3)
+    assert straight["learner"]["gradient_steps"] == resumed["learner"]["gradient_steps"] == 2 * 3 * 20
+    for key, value in straight["learner"]["loss"].items():
+        assert torch.equal(value, resumed["learner"]["loss"][key]), f"{key} differs after resume"
