@@ -97,14 +97,16 @@ def test_the_learner_refuses_an_epoch_whose_chunks_it_did_not_see():
         (["algo.update_every=0"], "algo.update_every must be an integer >= 1 .* got 0"),
         (["algo.update_every=30"], r"algo.update_every=30 must divide each env's steps per epoch "
                                    r"\(env.frames_per_epoch=200\)"),
-        (["env=walker", "algo.update_every=10", "workers=2", "episodes_per_epoch=2"],
+        (["algo=trpo", "+algo.update_every=10"], "algo.update_every=10 steps an off-policy learner .* algo=trpo "
+                                                  "learns from whole epochs"),
+        (["env=walker", "algo=sac", "algo.update_every=10", "workers=2", "episodes_per_epoch=2"],
          "algo.update_every=10 steps the learner between chunks .* set workers=1 \\(got workers=2"),
     ],
 )
 def test_bad_update_every_is_refused_by_name(overrides, match):
     with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["algo=sac", *overrides] if "env=walker" in overrides else
-                      [*SMALL, *overrides])
+        walker_or_trpo = "env=walker" in overrides or "algo=trpo" in overrides
+        cfg = compose("config", overrides=overrides if walker_or_trpo else [*SMALL, *overrides])
     with pytest.raises(ValueError, match=match):
         validate_config(cfg)
 

@@ -35,7 +35,7 @@ from unipolicy_rl.networks import ACTIVATIONS
 from unipolicy_rl.objectives.updater import CRITIC_FITS
 from unipolicy_rl.observation_statistics import REFRESH_MODES
 from unipolicy_rl.policy import FLAT_POLICIES, ON_POLICY_ALGOS, TOKEN_POLICIES, TOKEN_POLICY_ALGOS, token_critic
-from unipolicy_rl.registry import LEARNER_NAMES, SOURCE_KINDS
+from unipolicy_rl.registry import LEARNER_NAMES, OFF_POLICY_LEARNERS, SOURCE_KINDS
 
 # The batch keys algo.advantage_groups may name (TRPOLoss's advantage_groups): samples of one value
 # have their advantages standardised together.
@@ -402,6 +402,9 @@ def _update_every_fits(cfg: DictConfig) -> str | None:
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         return (f"algo.update_every must be an integer >= 1 (env steps between rounds of gradient steps) or null, "
                 f"got {every!r}")
+    if cfg.algo.name not in OFF_POLICY_LEARNERS:
+        return (f"algo.update_every={every} steps an off-policy learner (algo={' or algo='.join(OFF_POLICY_LEARNERS)}) "
+                f"between chunks of the epoch; algo={cfg.algo.name} learns from whole epochs: drop it")
     steps = steps_per_env_epoch(cfg)
     if steps % every:
         where = "env.frames_per_epoch" if env_kind(cfg) == GYM else "robot.episode_length"
