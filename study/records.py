@@ -11,12 +11,15 @@ ran, so the tables rebuild from a clone of a few MB:
 - ``evaluations.csv``: the periodic grid evaluations (:data:`EVALUATION_COLUMNS`);
 - ``commands.txt``: every command the run was given, with the commit it ran (the queue's log);
 - grammar runs: ``morphologies.csv`` (the final evaluation per robot and the robot's side of the
-  split) and ``periodic_morphologies.csv`` (the periodic evaluations per robot).
+  split) and ``periodic_morphologies.csv`` (the periodic evaluations per robot);
+- with ``--training-columns``: ``training.csv``, those columns of the run's metrics at the end of
+  each epoch, for a diagnosis that reads more than the evaluations (a critic's loss, a temperature).
 
 Floats are written as Python writes them (``repr``), so a table read from records is the one read
 from the run folders, digit for digit.
 
     python study/records.py RUNS DEST [--machine LABEL]   # every run under RUNS -> DEST/<its path>
+    python study/records.py RUNS DEST --training-columns train/loss_critic,train/alpha
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ RECORD = "record.yaml"
 EVALUATIONS = "evaluations.csv"
 MORPHOLOGIES = "morphologies.csv"
 PERIODIC = "periodic_morphologies.csv"
+TRAINING = "training.csv"
 # (mean_return: env=gym runs, whose evaluation is a return; records from before it lack the column)
 EVALUATION_COLUMNS = ("real_env_steps", "seconds", "cpu_seconds", "grid_mean", "grid_min", "walking_designs",
                       "mean_return")
@@ -273,6 +277,23 @@ def load(roots: list[Path]) -> tuple[list[Record], list[str]]:
     return records, left_out
 
 
+def write_training(run_folder: Path, names: list[str], folder: Path) -> Path:
+    """``training.csv`` in ``folder``: the columns ``names`` of the run's ``metrics.csv`` at the end of
+    each epoch (its real rows; an epoch logged twice, as a resumed run may, by its last row)."""
+    with (run_folder / "metrics.csv").open(newline="") as file:
+        rows = [row for row in csv.DictReader(file) if row.get("imagined") in (None, "", "0.0", "0")]
+    missing = sorted({name for name in names for row in rows[:1] if name not in row})
+    if missing:
+        raise ReportError(f"{run_folder}: metrics.csv has no column {', '.join(missing)}")
+    last = {row["epoch"]: row for row in rows}
+    path = folder / TRAINING
+    with path.open("w", newline="") as file:
+        writer = csv.writer(file, lineterminator="\n")
+        writer.writerow(["epoch", "real_env_steps", *names])
+        writer.writerows([row["epoch"], row["real_env_steps"], *(row[name] for name in names)] for row in last.values())
+    return path
+
+
 def _name(folder: Path, root: Path) -> str:
     folder, root = folder.resolve(), root.resolve()
     return folder.name if folder == root else str(folder.relative_to(root))
@@ -286,7 +307,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="a label for runs that ran on one machine at one load (their seconds compare)")
     parser.add_argument("--teachers-root", type=Path, default=Path("."),
                         help="where a distilled run's teachers' paths (algo.teachers) are read from (.)")
+    parser.add_argument("--training-columns", default=None,
+                        help="comma-separated metrics.csv columns to keep per epoch in training.csv")
     args = parser.parse_args(argv)
+    training = [name for name in (args.training_columns or "").split(",") if name]
     try:
         paths, _ = discover_runs([args.runs])
     except ReportError as error:
@@ -299,7 +323,13 @@ def main(argv: list[str] | None = None) -> int:
         if run.config is None or run.source is None:
             print(f"left out {name}: {'; '.join(run.problems) or 'no config'}", file=sys.stderr)
             continue
-        write(from_run(run, args.machine, args.teachers_root), args.destination / name)
+        folder = write(from_run(run, args.machine, args.teachers_root), args.destination / name)
+        if training:
+            try:
+                write_training(path, training, folder)
+            except ReportError as error:
+                print(f"error: {error}", file=sys.stderr)
+                return 1
         written += 1
     print(f"wrote {written} records under {args.destination}")
     return 0

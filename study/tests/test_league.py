@@ -299,6 +299,26 @@ def test_compact_records_rebuild_the_same_league_as_the_run_folders(sweep, tmp_p
         "commands.txt", "evaluations.csv", "record.yaml"]
 
 
+def test_training_columns_keep_each_epoch_s_last_real_row_and_a_missing_column_is_refused(tmp_path, capsys):
+    path = write_run(tmp_path / "runs", "se-moe-trpo", "model", 0, [(0, 1.0, 0.0)], 3000)
+    metrics = path / "metrics.csv"
+    lines = metrics.read_text().splitlines()
+    header = lines[0].split(",")
+    epoch, imagined = header.index("epoch"), header.index("imagined")
+    lines[0] += ",train/alpha"
+    for i, line in enumerate(lines[1:], start=1):
+        cells = line.split(",")
+        lines[i] += f",{'9' if cells[imagined] == '1.0' else cells[epoch]}"  # imagined rows: 9, never kept
+    lines.append(lines[-1].rsplit(",", 1)[0] + ",7")  # the last epoch logged again, as after a resume
+    metrics.write_text("\n".join(lines) + "\n")
+    assert records.main([str(tmp_path / "runs"), str(tmp_path / "records"), "--training-columns", "train/alpha"]) == 0
+    kept = (tmp_path / "records" / path.name / "training.csv").read_text().splitlines()
+    assert kept[0] == "epoch,real_env_steps,train/alpha"
+    assert [row.split(",")[-1] for row in kept[1:]] == ["1", "2", "7"]
+    assert records.main([str(tmp_path / "runs"), str(tmp_path / "other"), "--training-columns", "train/nope"]) == 1
+    assert "metrics.csv has no column train/nope" in capsys.readouterr().err
+
+
 def test_seconds_show_only_where_every_run_ran_on_one_machine_and_each_seed_counts_once(sweep, tmp_path, capsys):
     def wall_of_se_trpo_first_walk(table: str) -> str:
         lines = table.splitlines()
