@@ -80,6 +80,12 @@ def test_each_chunk_is_collected_by_the_policy_the_previous_chunk_s_steps_left()
     assert metrics["train/gradient_steps"] == 200 and "train/loss_critic" in metrics
 
 
+def test_update_every_of_the_whole_epoch_steps_once_after_it_as_one_chunk():
+    learner, batch = one_epoch(composed("algo.learning_starts=0", "algo.update_every=200"))
+    assert learner.gradient_steps == 200 and batch.shape == torch.Size([1, 200])
+    assert learner.update(batch)["train/gradient_steps"] == 200
+
+
 def test_the_learner_refuses_an_epoch_whose_chunks_it_did_not_see():
     torch.manual_seed(0)
     learner = make_learner(composed("algo.update_every=50"), 3, 1)

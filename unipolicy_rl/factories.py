@@ -103,7 +103,7 @@ def robots_per_worker(cfg: DictConfig) -> int:
 
 
 def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
-                   full_state: bool = False, chunks_per_epoch: int = 1) -> Collector | MultiSyncCollector:
+                   full_state: bool = False, chunks_per_epoch: int | None = None) -> Collector | MultiSyncCollector:
     """One epoch (``episodes_per_epoch`` robots x ``episode_length`` steps) per iteration.
 
     ``workers`` processes each step their share of the robots *and* run the policy on them
@@ -128,22 +128,20 @@ def make_collector(cfg: DictConfig, policy: TensorDictModuleBase, epochs: int,
     process, its episodes ending at the task's own time limit or termination; the batch is
     ``[1, steps]``, shaped as a walker's ``[robots, steps]``.
 
-    ``chunks_per_epoch`` > 1 (``algo.update_every``; one process only) makes each batch a chunk of
-    the epoch's steps of every env, without the epoch's post-processing (:func:`epoch_postproc`),
-    which :class:`RealEpochCollector` applies to the chunks joined.
+    ``chunks_per_epoch`` (``algo.update_every``) makes each batch one of that many chunks of the
+    epoch's steps of every env, without the epoch's post-processing (:func:`epoch_postproc`), which
+    :class:`RealEpochCollector` applies to the chunks joined; None: each batch is the epoch.
     """
     frames_per_batch = frames_per_epoch(cfg)
     env_class, kwargs = env_builder(cfg)
     postproc = epoch_postproc(cfg)
-    if chunks_per_epoch > 1:
-        if cfg.workers != 1 or cfg.collector.backend != "process":
-            raise ValueError(f"an epoch collected in {chunks_per_epoch} chunks (algo.update_every) needs the learner "
-                             f"in the collecting process: workers=1 and collector.backend=process, got "
-                             f"workers={cfg.workers}, collector.backend={cfg.collector.backend}")
-        if frames_per_batch % chunks_per_epoch:
-            raise ValueError(f"{frames_per_batch} real env steps per epoch do not split into {chunks_per_epoch} chunks")
+    if chunks_per_epoch is not None:
+        if not (isinstance(chunks_per_epoch, int) and chunks_per_epoch >= 1
+                and frames_per_batch % chunks_per_epoch == 0):
+            raise ValueError(f"{frames_per_batch} real env steps per epoch do not split into {chunks_per_epoch!r} "
+                             f"chunks")
         frames_per_batch, postproc = frames_per_batch // chunks_per_epoch, None
-    total_frames = frames_per_batch * chunks_per_epoch * max(epochs, 1)
+    total_frames = frames_per_batch * (chunks_per_epoch or 1) * max(epochs, 1)
     if env_kind(cfg) == GYM:
         return Collector(functools.partial(training_env, 1, env_class=env_class, **kwargs), policy,
                          frames_per_batch=frames_per_batch, total_frames=total_frames,
@@ -178,21 +176,22 @@ def make_real_collector(cfg: DictConfig, policy: TensorDictModuleBase, full_stat
     frames_per_batch = frames_per_epoch(cfg)
     if robots := OmegaConf.select(cfg, "collector.mean_action_robots", default=0):
         policy = MeanActionRobots(policy, robots)
+    check_settings(cfg, "algo", "env", "robot", "workers", "collector")  # validation's rule for update_every
     chunks = chunks_per_epoch(cfg)
-    if chunks > 1 and between_chunks is None:
+    if chunks is not None and between_chunks is None:
         raise ValueError(f"algo.update_every={cfg.algo.update_every} collects the epoch in chunks for a learner to "
                          f"step between them: pass its update_chunk as between_chunks")
     collector = make_collector(cfg, policy, cfg.epochs, full_state=full_state, chunks_per_epoch=chunks)
     return RealEpochCollector(collector, cfg.seed, cfg.epochs, frames_per_batch, chunks_per_epoch=chunks,
-                              between_chunks=between_chunks if chunks > 1 else None,
-                              postproc=epoch_postproc(cfg) if chunks > 1 else None)
+                              between_chunks=between_chunks if chunks is not None else None,
+                              postproc=epoch_postproc(cfg) if chunks is not None else None)
 
 
-def chunks_per_epoch(cfg: DictConfig) -> int:
+def chunks_per_epoch(cfg: DictConfig) -> int | None:
     """The chunks ``algo.update_every`` (an off-policy learner's env steps between its rounds of
-    gradient steps) splits each env's epoch into; 1 without it."""
+    gradient steps) splits each env's epoch into (1 where it is the whole epoch); None without it."""
     every = OmegaConf.select(cfg, "algo.update_every", default=None)
-    return 1 if every is None else steps_per_env_epoch(cfg) // every
+    return None if every is None else steps_per_env_epoch(cfg) // every
 
 
 def epoch_postproc(cfg: DictConfig) -> Callable[[TensorDictBase], TensorDictBase]:

@@ -43,12 +43,13 @@ class RealEpochCollector:
 
     Args:
         collector: a TorchRL collector whose every batch is one epoch of whole episodes or, with
-            ``chunks_per_epoch`` > 1, one chunk of every env's steps (a single-process
-            ``Collector``, whose policy is the learner's own).
+            ``chunks_per_epoch``, one chunk of every env's steps (a single-process ``Collector``,
+            whose policy is the learner's own).
         seed: the run's seed.
         epochs: the epoch to stop after (absolute: a resumed run starts at :attr:`epoch`).
         frames_per_batch: real env steps in one epoch.
-        chunks_per_epoch: chunks the epoch is collected in (1: one batch per epoch).
+        chunks_per_epoch: chunks the epoch is collected in, each handed to ``between_chunks``
+            (None: the collector's batch is the epoch).
         between_chunks: called with each chunk (labelled ``real``) as it arrives: an off-policy
             learner's gradient steps on it, which the next chunk's actions then follow.
         postproc: applied to each assembled epoch (the chunked collector's batches are chunks,
@@ -56,12 +57,12 @@ class RealEpochCollector:
     """
 
     def __init__(self, collector: Collector | MultiSyncCollector, seed: int, epochs: int,
-                 frames_per_batch: int, chunks_per_epoch: int = 1,
+                 frames_per_batch: int, chunks_per_epoch: int | None = None,
                  between_chunks: Callable[[TensorDictBase], object] | None = None,
                  postproc: Callable[[TensorDictBase], TensorDictBase] | None = None) -> None:
-        if not (isinstance(chunks_per_epoch, int) and chunks_per_epoch >= 1):
-            raise ValueError(f"chunks_per_epoch must be an integer >= 1, got {chunks_per_epoch!r}")
-        if chunks_per_epoch > 1 and not isinstance(collector, Collector):
+        if chunks_per_epoch is not None and not (isinstance(chunks_per_epoch, int) and chunks_per_epoch >= 1):
+            raise ValueError(f"chunks_per_epoch must be an integer >= 1 or None, got {chunks_per_epoch!r}")
+        if chunks_per_epoch is not None and not isinstance(collector, Collector):
             raise ValueError(f"an epoch in {chunks_per_epoch} chunks needs the single-process Collector, whose "
                              f"policy the learner updates between chunks, not a {type(collector).__name__}")
         self.collector = collector
@@ -79,7 +80,7 @@ class RealEpochCollector:
         batches = iter(self.collector)
         while self.epoch < self.epochs:
             self._restart_randomness(self.epoch)
-            batch = next(batches) if self.chunks_per_epoch == 1 else self._chunked_epoch(batches)
+            batch = next(batches) if self.chunks_per_epoch is None else self._chunked_epoch(batches)
             if self.postproc is not None:
                 batch = self.postproc(batch)
             self.epoch += 1
