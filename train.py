@@ -34,7 +34,13 @@ from unipolicy_rl import metric_columns as columns
 from unipolicy_rl.checkpoint import RunCheckpoints, check_resumable, load_checkpoint, restore_training_state
 from unipolicy_rl.collectors import imagined_metrics
 from unipolicy_rl.evaluation import format_morphology_summary, format_summary
-from unipolicy_rl.factories import make_learner, make_real_collector, make_world_model_parts, probe_dimensions
+from unipolicy_rl.factories import (
+    make_learner,
+    make_real_collector,
+    make_refits_within_epoch,
+    make_world_model_parts,
+    probe_dimensions,
+)
 from unipolicy_rl.initial_policy import policy_to_start_from
 from unipolicy_rl.learners.policy_average import end_of_epoch, learning_policy
 from unipolicy_rl.objectives.adaptive_kl import imagined_trust_region
@@ -90,6 +96,11 @@ def main(cfg: DictConfig) -> dict:
             restore_training_state(state, learner=learner, collector=real, world=world)
             real.update_policy_weights_()
             print(f"resumed from {cfg.resume} at epoch {state['epoch']}")
+        # (imagination.refit_every: MBPO's refits while the epoch is collected, between its chunks)
+        refits = make_refits_within_epoch(cfg, learner, world, learning_policy(learner), real.epoch + 1) \
+            if world is not None else None
+        if refits is not None:
+            real.between_chunks = refits
         checkpoints = RunCheckpoints(run_dir, config=OmegaConf.to_container(cfg, resolve=True), choices=choices,
                                      observation_dim=observation_dim, action_dim=action_dim, learner=learner,
                                      collector=real, world=world,
@@ -112,7 +123,10 @@ def main(cfg: DictConfig) -> dict:
                 # ---- Model training on the replay buffer of real transitions
                 # (what the model the policy last trained on gets wrong on the states it now visits)
                 fitted_before = len(world.buffer) > 0
-                new_transitions = world.buffer.extend(batch, epoch)
+                # (with refits within the epoch, the buffer holds its steps up to the last of them)
+                new_transitions = world.buffer.extend(batch if refits is None else refits.rest_of_epoch(batch), epoch)
+                if refits is not None:
+                    metrics.update(refits.metrics())
                 if fitted_before:
                     metrics.update(fresh_error(world.model, new_transitions))
                 fit = None

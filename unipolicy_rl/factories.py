@@ -30,6 +30,7 @@ from unipolicy_rl.collectors import (
     truncate_last_step,
 )
 from unipolicy_rl.collectors.distributed import make_epoch_ray_collector
+from unipolicy_rl.collectors.refits import RefitsWithinEpoch
 from unipolicy_rl.env_factories import (
     env_builder,
     env_kind,
@@ -198,6 +199,32 @@ def epoch_postproc(cfg: DictConfig) -> Callable[[TensorDictBase], TensorDictBase
     """What ends an epoch's batch: its last step truncated (a gym task's one env also gains the
     robots' dimension)."""
     return one_env_epoch if env_kind(cfg) == GYM else truncate_last_step
+
+
+def chunk_as_env_batch(cfg: DictConfig) -> Callable[[TensorDictBase], TensorDictBase]:
+    """A chunk of the epoch as ``[envs, steps]`` (a gym task's one env's chunk is ``[steps]``),
+    its last step left as it is: the episode goes on in the next chunk."""
+    return add_env_dimension if env_kind(cfg) == GYM else as_it_is
+
+
+def add_env_dimension(batch: TensorDictBase) -> TensorDictBase:
+    return batch.unsqueeze(0)
+
+
+def as_it_is(batch: TensorDictBase) -> TensorDictBase:
+    return batch
+
+
+def make_refits_within_epoch(cfg: DictConfig, learner: OffPolicyLearner, world: WorldModelParts,
+                             policy: TensorDictModuleBase, epoch: int) -> RefitsWithinEpoch | None:
+    """MBPO's refits while the epoch is collected (``imagination.refit_every``), the real
+    collector's ``between_chunks`` from ``epoch`` on (counted from 1); None without the setting."""
+    every = OmegaConf.select(cfg, "imagination.refit_every", default=None)
+    if every is None:
+        return None
+    check_settings(cfg, "imagination", "algo", "env", "robot", "source")  # validation's rule for refit_every
+    return RefitsWithinEpoch(learner, world, policy, cfg.seed, every, steps_per_env_epoch(cfg),
+                             chunk_as_env_batch(cfg), epoch)
 
 
 @dataclass

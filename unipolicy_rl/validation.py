@@ -417,6 +417,44 @@ def _update_every_fits(cfg: DictConfig) -> str | None:
     return None
 
 
+def _refit_every_fits(cfg: DictConfig) -> str | None:
+    """``imagination.refit_every`` (MBPO's refits while the epoch is collected): a world model, an
+    off-policy learner that learns between the epoch's chunks, refits on the chunks' boundaries
+    within the epoch, and the loop's own fit after every epoch, in this thread."""
+    every = OmegaConf.select(cfg, "imagination.refit_every", default=None)
+    if every is None:
+        return None
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        return f"imagination.refit_every must be a positive integer (env steps between refits) or null, got {every!r}"
+    what = f"imagination.refit_every={every}"
+    if cfg.source.kind != "model":
+        return (f"{what} refits a world model while the epoch is collected, and source={cfg.source.name} has none: "
+                f"drop it, or choose a model source (source=moe or source=pce)")
+    if cfg.algo.name not in OFF_POLICY_LEARNERS:
+        return (f"{what} fills an off-policy learner's model buffer as the epoch is collected (MBPO: "
+                f"algo={' or algo='.join(OFF_POLICY_LEARNERS)}); algo={cfg.algo.name} imagines after each epoch: "
+                f"drop it")
+    update_every = OmegaConf.select(cfg, "algo.update_every", default=None)
+    if update_every is None:
+        return (f"{what} needs the learner to learn while the epoch is collected: set algo.update_every (env steps "
+                f"between its rounds of gradient steps; MBPO: 1)")
+    if isinstance(update_every, int) and every % update_every:
+        return (f"{what} must be a multiple of algo.update_every={update_every}: the refits fall between the "
+                f"epoch's chunks")
+    steps = steps_per_env_epoch(cfg)
+    if steps % every:
+        where = "env.frames_per_epoch" if env_kind(cfg) == GYM else "robot.episode_length"
+        return f"{what} must divide each env's steps per epoch ({where}={steps})"
+    imagination = cfg.imagination
+    if imagination.get("fit_every", 1) != 1:
+        return (f"{what} refits within every epoch, and imagination.fit_every={imagination.fit_every} skips the "
+                f"fits after some: set imagination.fit_every=1")
+    if imagination.get("background_fit", False):
+        return (f"{what} fits in the training thread, between the epoch's chunks: set "
+                f"imagination.background_fit=false")
+    return None
+
+
 # keys -> rule, for the plain values checked against each other; run after the keys' own rules,
 # it returns the whole message (naming the keys and values) or None.
 JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
@@ -437,6 +475,7 @@ JOINT_RULES: dict[tuple[str, ...], Callable[[DictConfig], str | None]] = {
     ("collector", "env", "episodes_per_epoch", "workers", "algo.name", "source.kind", "imagination"):
         _mean_action_robots_fit,
     ("algo", "env", "robot", "workers", "collector"): _update_every_fits,
+    ("imagination", "algo", "env", "robot", "source"): _refit_every_fits,
 }
 
 

@@ -174,6 +174,11 @@ class ImaginationSettings:
             are done (:class:`~unipolicy_rl.world_models.PendingFit`). Pays on a machine with a
             core to spare: the epoch then takes about the longer of the fit and the updates, not
             their sum. The first fit, with no model before it, runs before the updates.
+        refit_every: an off-policy learner's model refreshes while the epoch is collected (MBPO:
+            every 250 real steps): every this many env steps (of each env) the real data so far
+            join the model's buffer, the model is refitted and one imagined batch from the
+            current policy goes to the learner (:class:`~unipolicy_rl.collectors.refits.RefitsWithinEpoch`;
+            needs ``algo.update_every``); the fit after the epoch stays. None: that fit only.
         stopping: how many updates follow each model fit.
         adaptive_kl: the imagined updates' KL bound, shrunk as the model's fresh error rises
             (:class:`~unipolicy_rl.objectives.adaptive_kl.AdaptiveKL`; off by default).
@@ -191,6 +196,7 @@ class ImaginationSettings:
     buffer_capacity: int = 200_000
     fit_every: int = 1
     background_fit: bool = False
+    refit_every: int | None = None
     stopping: StoppingRule = StoppingRule()
     adaptive_kl: AdaptiveKL = AdaptiveKL()
 
@@ -201,8 +207,10 @@ class ImaginationSettings:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.start_epochs is not None and not (isinstance(self.start_epochs, int) and self.start_epochs >= 1):
-            raise ValueError(f"start_epochs must be a positive integer or None, got {self.start_epochs!r}")
+        for name in ("start_epochs", "refit_every"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
         if self.disagreement_cut is not None:
             check_threshold(self.disagreement_cut)
         if self.disagreement_penalty is not None:
@@ -276,9 +284,10 @@ class Imagination:
         return self.episode_length if self.settings.rollout == "episode" else self.settings.horizon(epoch)
 
     def epoch(self, epoch: int, transitions: TensorDictBase, policy: TensorDictModuleBase,
-              real_surrogate: Callable[[], torch.Tensor] | None = None) -> ImaginedEpoch:
+              real_surrogate: Callable[[], torch.Tensor] | None = None, part: int | None = None) -> ImaginedEpoch:
         """The imagined batches of ``epoch`` (iterate them; each is one policy update's data),
-        branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``.
+        branching from ``transitions`` (the replay buffer's contents), rolled out by ``policy``;
+        ``part``: the refit within the epoch they follow (``refit_every``; None: the fit after it).
 
         ``real_surrogate`` (``stopping.kind=real`` only, and needed there): the current policy's
         TRPO surrogate on the epoch's real batch, one term per sample (the surrogate is their
@@ -287,7 +296,7 @@ class Imagination:
         if self.stopping.kind == "real" and real_surrogate is None:
             raise ValueError("stopping.kind=real needs real_surrogate: the policy's TRPO surrogate on the "
                              "epoch's real batch (TRPOLearner.real_surrogate)")
-        torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION))
+        torch.manual_seed(epoch_seed(self.seed, epoch, IMAGINATION, part))
         horizon = self.horizon(epoch)
         starts = self._start_sampler(transitions, epoch)
         cut, penalty = self._disagreement_uses(transitions)
