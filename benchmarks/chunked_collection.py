@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from random_rollout import random_rollout_rate
 from torchrl.envs import GymEnv
 
 from unipolicy_rl.factories import make_learner, make_real_collector, probe_dimensions
@@ -53,14 +54,7 @@ def epoch_seconds(env_id: str, steps: int, update_every: int | None) -> float:
 
 def raw_env(env_id: str, steps: int) -> float:
     """Real env steps/s of TorchRL's GymEnv alone: random actions, no policy."""
-    env = GymEnv(env_id)
-    env.set_seed(0)
-    env.rollout(5)
-    started = time.perf_counter()
-    env.rollout(steps, break_when_any_done=False)
-    seconds = time.perf_counter() - started
-    env.close()
-    return steps / seconds
+    return random_rollout_rate(GymEnv(env_id), steps)
 
 
 def main(argv: list[str] | None = None) -> dict:

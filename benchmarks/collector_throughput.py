@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from random_rollout import random_rollout_rate
 
 from unipolicy_rl.collectors import RealEpochCollector
 from unipolicy_rl.envs import BatchedWalkerEnv
@@ -66,15 +67,7 @@ def collect(robots: int, backend: str, workers: int, epochs: int) -> tuple[float
 
 def raw_env(robots: int, epochs: int) -> float:
     """Real env steps/s of ``BatchedWalkerEnv`` alone: the same robots, random actions, no policy."""
-    env = BatchedWalkerEnv(robots, episode_length=None)
-    env.set_seed(0)
-    env.rollout(5)
-    started = time.perf_counter()
-    for _ in range(epochs):
-        env.rollout(100, break_when_any_done=False)
-    seconds = time.perf_counter() - started
-    env.close()
-    return epochs * 100 * robots / seconds
+    return random_rollout_rate(BatchedWalkerEnv(robots, episode_length=None), 100, rollouts=epochs)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
+from random_rollout import random_rollout_rate
 from tensordict import TensorDict
 
 from unipolicy_rl.envs import BatchedWalkerEnv
@@ -80,14 +81,7 @@ def trpo_updates_per_second(updates: int) -> float:
 
 def physics_steps_per_second(actions: int = 100) -> float:
     """Real env steps per second of 10 robots, ``actions`` actions each, random actions."""
-    env = BatchedWalkerEnv(10)
-    env.set_seed(0)
-    env.rollout(10)
-    started = time.perf_counter()
-    env.rollout(actions, break_when_any_done=False)
-    seconds = time.perf_counter() - started
-    env.close()
-    return 10 * actions / seconds
+    return random_rollout_rate(BatchedWalkerEnv(10), actions, warmup=10)
 
 
 def main(argv: list[str] | None = None) -> dict:
