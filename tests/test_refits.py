@@ -11,7 +11,8 @@ from hydra import compose, initialize_config_dir
 from test_off_policy import MBPO_TINY
 from test_train import run_train, straight_and_resumed
 
-from unipolicy_rl.collectors import ImaginationSettings
+from unipolicy_rl.checkpoint import load_checkpoint
+from unipolicy_rl.collectors import COLLECTED_IN, ImaginationSettings
 from unipolicy_rl.factories import (
     make_learner,
     make_real_collector,
@@ -106,6 +107,12 @@ def test_train_py_refits_within_each_epoch(tmp_path):
     rows = [row for row in csv.DictReader(open(tmp_path / "metrics.csv")) if row["imagined"] == "0.0"]
     assert [float(row["model/refits_within_epoch"]) for row in rows] == [1, 1]
     assert all(float(row["model/refit_seconds"]) > 0 for row in rows)
+    # The model's buffer holds every real step once: each epoch's first 100 from its refit, the
+    # other 100 from the fit after it.
+    storage = load_checkpoint(tmp_path / "checkpoint.pt")["replay_buffer"]["_storage"]
+    assert storage["_len"] == 400
+    collected_in = storage["_storage"][COLLECTED_IN][:400]
+    assert (collected_in == 1).sum() == 200 and (collected_in == 2).sum() == 200
 
 
 @pytest.mark.slow
