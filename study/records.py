@@ -13,7 +13,8 @@ ran, so the tables rebuild from a clone of a few MB:
 - grammar runs: ``morphologies.csv`` (the final evaluation per robot and the robot's side of the
   split) and ``periodic_morphologies.csv`` (the periodic evaluations per robot);
 - with ``--training-columns``: ``training.csv``, those columns of the run's metrics at the end of
-  each epoch, for a diagnosis that reads more than the evaluations (a critic's loss, a temperature).
+  each epoch, for a diagnosis that reads more than the evaluations (a critic's loss, a temperature);
+  a run without some of them (another learner's) keeps those it has, and says which it lacks.
 
 Floats are written as Python writes them (``repr``), so a table read from records is the one read
 from the run folders, digit for digit.
@@ -277,21 +278,25 @@ def load(roots: list[Path]) -> tuple[list[Record], list[str]]:
     return records, left_out
 
 
-def write_training(run_folder: Path, names: list[str], folder: Path) -> Path:
-    """``training.csv`` in ``folder``: the columns ``names`` of the run's ``metrics.csv`` at the end of
-    each epoch (its real rows; an epoch logged twice, as a resumed run may, by its last row)."""
+def write_training(run_folder: Path, names: list[str], folder: Path) -> list[str]:
+    """``training.csv`` in ``folder``: those of the columns ``names`` that the run's ``metrics.csv``
+    has, at the end of each epoch (its real rows; an epoch logged twice, as a resumed run may, by
+    its last row). Returns the names it does not have (a SAC run has no TRPO column): no file
+    where it has none of them."""
     with (run_folder / "metrics.csv").open(newline="") as file:
-        rows = [row for row in csv.DictReader(file) if row.get("imagined") in (None, "", "0.0", "0")]
-    missing = sorted({name for name in names for row in rows[:1] if name not in row})
-    if missing:
-        raise ReportError(f"{run_folder}: metrics.csv has no column {', '.join(missing)}")
+        reader = csv.DictReader(file)
+        present = [name for name in names if name in (reader.fieldnames or ())]
+        rows = [row for row in reader if row.get("imagined") in (None, "", "0.0", "0")]
+    missing = [name for name in names if name not in present]
+    if not present:
+        return missing
     last = {row["epoch"]: row for row in rows}
-    path = folder / TRAINING
-    with path.open("w", newline="") as file:
+    with (folder / TRAINING).open("w", newline="") as file:
         writer = csv.writer(file, lineterminator="\n")
-        writer.writerow(["epoch", "real_env_steps", *names])
-        writer.writerows([row["epoch"], row["real_env_steps"], *(row[name] for name in names)] for row in last.values())
-    return path
+        writer.writerow(["epoch", "real_env_steps", *present])
+        writer.writerows([row["epoch"], row["real_env_steps"], *(row[name] for name in present)]
+                         for row in last.values())
+    return missing
 
 
 def _name(folder: Path, root: Path) -> str:
@@ -316,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     except ReportError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
-    written = 0
+    written, found = 0, set()
     for path in paths:
         name = _name(path, args.runs)
         run = load_run(path, name)
@@ -325,12 +330,15 @@ def main(argv: list[str] | None = None) -> int:
             continue
         folder = write(from_run(run, args.machine, args.teachers_root), args.destination / name)
         if training:
-            try:
-                write_training(path, training, folder)
-            except ReportError as error:
-                print(f"error: {error}", file=sys.stderr)
-                return 1
+            missing = write_training(path, training, folder)
+            found.update(name for name in training if name not in missing)
+            if missing:
+                print(f"{name}: its metrics.csv has no column {', '.join(missing)} (left out of its training.csv)",
+                      file=sys.stderr)
         written += 1
+    if training and (nowhere := [name for name in training if name not in found]):
+        print(f"error: no run's metrics.csv has the column {', '.join(nowhere)}", file=sys.stderr)
+        return 1
     print(f"wrote {written} records under {args.destination}")
     return 0
 

@@ -299,7 +299,7 @@ def test_compact_records_rebuild_the_same_league_as_the_run_folders(sweep, tmp_p
         "commands.txt", "evaluations.csv", "record.yaml"]
 
 
-def test_training_columns_keep_each_epoch_s_last_real_row_and_a_missing_column_is_refused(tmp_path, capsys):
+def test_training_columns_keep_each_epoch_s_last_real_row_and_a_column_no_run_has_is_refused(tmp_path, capsys):
     path = write_run(tmp_path / "runs", "se-moe-trpo", "model", 0, [(0, 1.0, 0.0)], 3000)
     metrics = path / "metrics.csv"
     lines = metrics.read_text().splitlines()
@@ -315,8 +315,16 @@ def test_training_columns_keep_each_epoch_s_last_real_row_and_a_missing_column_i
     kept = (tmp_path / "records" / path.name / "training.csv").read_text().splitlines()
     assert kept[0] == "epoch,real_env_steps,train/alpha"
     assert [row.split(",")[-1] for row in kept[1:]] == ["1", "2", "7"]
+    # A column some runs lack (another learner's) is kept where it is, and said where it is not;
+    # one that no run has (a typo) is refused.
+    other = write_run(tmp_path / "runs", "se-trpo", "real", 0, [(0, 1.0, 0.0)], 3000)
+    capsys.readouterr()
+    assert records.main([str(tmp_path / "runs"), str(tmp_path / "both"), "--training-columns", "train/alpha"]) == 0
+    assert (tmp_path / "both" / path.name / "training.csv").read_text().splitlines() == kept
+    assert not (tmp_path / "both" / other.name / "training.csv").exists()
+    assert f"{other.name}: its metrics.csv has no column train/alpha" in capsys.readouterr().err
     assert records.main([str(tmp_path / "runs"), str(tmp_path / "other"), "--training-columns", "train/nope"]) == 1
-    assert "metrics.csv has no column train/nope" in capsys.readouterr().err
+    assert "no run's metrics.csv has the column train/nope" in capsys.readouterr().err
 
 
 def test_seconds_show_only_where_every_run_ran_on_one_machine_and_each_seed_counts_once(sweep, tmp_path, capsys):
